@@ -1,0 +1,22 @@
+"""Shared machinery of the offline pipelines: the resumable, parallel, atomic build driver."""
+from .driver import (
+    BuildOptions,
+    BuildSummary,
+    ShardPlan,
+    add_build_arguments,
+    build_options_from_args,
+    creator_from_args,
+    fingerprint_from_args,
+    run_build,
+)
+
+__all__ = [
+    "BuildOptions",
+    "BuildSummary",
+    "ShardPlan",
+    "add_build_arguments",
+    "build_options_from_args",
+    "creator_from_args",
+    "fingerprint_from_args",
+    "run_build",
+]

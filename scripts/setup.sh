@@ -1,0 +1,20 @@
+#!/usr/bin/env bash
+# One-time, idempotent set-up of a fresh machine: offscreen OpenGL (EGL/Mesa), torch (CPU build
+# where no GPU build is wanted), and usl itself in editable mode with its test extras.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+if ! ldconfig -p | grep -q 'libEGL_mesa.so'; then
+  echo "[setup] installing Debian's EGL/Mesa packages for offscreen rendering"
+  SUDO=""; [ "$(id -u)" -ne 0 ] && SUDO="sudo"
+  $SUDO apt-get update -qq
+  DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq libegl1 libegl-mesa0 libgl1-mesa-dri libgles2 >/dev/null
+fi
+
+PY=${PYTHON:-python3}
+if ! $PY -c 'import torch' 2>/dev/null; then
+  echo "[setup] installing torch 2.13.0"
+  $PY -m pip install -q --root-user-action=ignore torch==2.13.0
+fi
+echo "[setup] installing usl (editable) and its dependencies"
+$PY -m pip install -q --root-user-action=ignore -e ".[test]"

@@ -1,0 +1,38 @@
+"""A tiny synthetic dataset builder for records tests: deterministic scenes of discs on noise."""
+from __future__ import annotations
+
+import numpy as np
+
+from usl.records import SceneRecord, Skip, encode_depth, encode_image, frame_row, make_instance, object_row
+
+SPEC = {
+    "name": "fake",
+    "categories": [{"id": 1, "name": "disc"}, {"id": 2, "name": "square"}],
+    "layout": {"z0": 1.0, "z1": 3.0, "rho0": 0.1, "rho1": 1.0},
+}
+SIZE = 32
+
+
+def build_fake_scene(unit: tuple[str, int, int]) -> SceneRecord:
+    """Scene ``unit = (scene_id, seed, num_views)``; view v shows two shapes moving with v."""
+    scene_id, seed, num_views = unit
+    rng = np.random.default_rng(seed)
+    if num_views == 0:
+        return SceneRecord(scene_id, [], skips=[Skip("no usable views", f"{scene_id}.fake")])
+    yy, xx = np.mgrid[0:SIZE, 0:SIZE] + 0.5
+    frames = []
+    for view in range(num_views):
+        image = rng.integers(0, 255, (SIZE, SIZE, 3), dtype=np.uint8)
+        depth = np.full((SIZE, SIZE), 2.0 + 0.01 * view)
+        cx, cy = 8 + view % 8, 10 + (seed % 5)
+        disc = (xx - cx) ** 2 + (yy - cy) ** 2 < 25
+        square = (np.abs(xx - 22) < 4) & (np.abs(yy - 20 - view % 3) < 4)
+        instances = [make_instance(7, 1, disc, depth), make_instance(9, 2, square, depth * 1.5)]
+        K = np.array([[30.0, 0, SIZE / 2], [0, 30.0, SIZE / 2], [0, 0, 1]])
+        pose = np.eye(4)
+        pose[0, 3] = 0.1 * view
+        frames.append(frame_row(scene_id, view, encode_image(image), K, pose, instances, SIZE, SIZE, encode_depth(depth)))
+    tri = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], np.float32) * (1 + seed % 3)
+    objects = [object_row(scene_id, 7, 1, f"disc-{seed}", tri, np.array([[0, 1, 2]])),
+               object_row(scene_id, 9, 2, f"square-{seed}", tri + 1, np.array([[0, 2, 1]]))]
+    return SceneRecord(scene_id, frames, objects)

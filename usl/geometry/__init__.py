@@ -1,0 +1,21 @@
+"""Geometry shared by every part of usl: cameras (DESIGN.md §2), frustum homography, meshes."""
+from usl.geometry.frustum import cube_to_frustum, frustum_homography, frustum_to_cube
+from usl.geometry.icosphere import ico_sphere
+from usl.geometry.meshes import Meshes
+from usl.geometry.nearest import chamfer_directions, nearest_neighbors
+from usl.geometry.sampling import face_areas_packed, sample_points_from_meshes
+from usl.geometry.topology import uniform_laplacian, unique_edges
+
+__all__ = [
+    "Meshes",
+    "chamfer_directions",
+    "cube_to_frustum",
+    "face_areas_packed",
+    "frustum_homography",
+    "frustum_to_cube",
+    "ico_sphere",
+    "nearest_neighbors",
+    "sample_points_from_meshes",
+    "uniform_laplacian",
+    "unique_edges",
+]

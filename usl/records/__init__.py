@@ -1,0 +1,49 @@
+"""Sharded Parquet multi-view records (DESIGN.md §3): schema, encoding, writing, reading, validation."""
+from .encode import (
+    SceneRecord,
+    Skip,
+    decode_depth,
+    decode_image,
+    decode_mask,
+    encode_depth,
+    encode_image,
+    encode_mask,
+    frame_K,
+    frame_pose,
+    frame_row,
+    make_instance,
+    mask_bbox,
+    object_mesh,
+    object_row,
+)
+from .errors import UslError
+from .manifest import load_manifest
+from .reader import RecordsDataset, SceneStream, partition
+from .schema import SCHEMA_VERSION
+from .shards import ShardResult, ShardWriter
+
+__all__ = [
+    "SCHEMA_VERSION",
+    "RecordsDataset",
+    "SceneRecord",
+    "SceneStream",
+    "ShardResult",
+    "ShardWriter",
+    "Skip",
+    "UslError",
+    "decode_depth",
+    "decode_image",
+    "decode_mask",
+    "encode_depth",
+    "encode_image",
+    "encode_mask",
+    "frame_K",
+    "frame_pose",
+    "frame_row",
+    "load_manifest",
+    "make_instance",
+    "mask_bbox",
+    "object_mesh",
+    "object_row",
+    "partition",
+]

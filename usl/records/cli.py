@@ -1,0 +1,47 @@
+"""``usl-records``: validate a dataset folder, or summarise it with counts and a contact sheet."""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from .errors import UslError
+from .info import contact_sheet, dataset_counts, format_counts
+from .validate import validate_dataset
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="usl-records", description=__doc__)
+    sub = parser.add_subparsers(dest="command", required=True)
+    check = sub.add_parser("validate", help="check a dataset folder against the record spec")
+    check.add_argument("root", type=Path)
+    check.add_argument("--split", action="append", help="only these splits (repeatable)")
+    check.add_argument("--no-images", action="store_true", help="skip decoding every image (faster)")
+    info = sub.add_parser("info", help="counts per split and category, and a contact sheet PNG")
+    info.add_argument("root", type=Path)
+    info.add_argument("--sheet", type=Path, help="contact sheet path (default: ROOT/contact_sheet.png)")
+    info.add_argument("--split", help="split for the contact sheet (default: the first)")
+    info.add_argument("--scenes", type=int, default=4)
+    info.add_argument("--views", type=int, default=4)
+    info.add_argument("--json", action="store_true", help="print counts as JSON")
+    args = parser.parse_args(argv)
+    try:
+        if args.command == "validate":
+            problems = validate_dataset(args.root, args.split, decode_images=not args.no_images, progress=True)
+            for problem in problems:
+                print(problem)
+            print(f"{args.root}: {'valid' if not problems else f'{len(problems)} problem(s)'}")
+            return 1 if problems else 0
+        counts = dataset_counts(args.root)
+        print(json.dumps(counts, indent=1) if args.json else format_counts(counts))
+        sheet = contact_sheet(args.root, args.sheet or args.root / "contact_sheet.png", args.split, args.scenes, args.views)
+        print(f"contact sheet: {sheet}")
+        return 0
+    except UslError as exc:
+        print(f"usl-records: error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

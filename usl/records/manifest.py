@@ -1,0 +1,70 @@
+"""``manifest.json``: the table of contents of a dataset folder, written last and atomically."""
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+from typing import Any
+
+from .errors import UslError
+from .schema import SCHEMA_VERSION, check_version
+
+MANIFEST = "manifest.json"
+
+
+def write_json_atomic(path: Path, data: Any) -> None:
+    """Write JSON to a temp file, fsync, rename: readers never see a half-written file."""
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    with open(tmp, "w") as f:
+        json.dump(data, f, indent=1, sort_keys=False)
+        f.write("\n")
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+
+
+def dataset_metadata(spec: dict[str, Any]) -> dict[str, Any]:
+    """The dataset-level facts stored both in the manifest and in every shard's Arrow schema."""
+    return {
+        "name": spec["name"],
+        "schema_version": SCHEMA_VERSION,
+        "categories": spec["categories"],
+        "layout": spec["layout"],
+    }
+
+
+def build_manifest(
+    spec: dict[str, Any], shards: list[dict[str, Any]], creator: dict[str, Any], fingerprint: dict[str, Any]
+) -> dict[str, Any]:
+    """Assemble the manifest from finished shard results (dicts of ShardResult fields)."""
+    splits: dict[str, Any] = {}
+    skips: list[dict[str, Any]] = []
+    for shard in sorted(shards, key=lambda s: (s["split"], s["index"])):
+        entry = splits.setdefault(shard["split"], {"num_scenes": 0, "num_frames": 0, "num_objects": 0, "shards": []})
+        entry["num_scenes"] += len(shard["scenes"])
+        entry["num_frames"] += shard["frames"]["rows"]
+        entry["num_objects"] += shard["objects"]["rows"] if shard["objects"] else 0
+        entry["shards"].append({k: shard[k] for k in ("index", "frames", "objects", "scenes")})
+        skips.extend(dict(s, split=shard["split"]) for s in shard["skips"])
+    return {
+        **dataset_metadata(spec),
+        "baselines": spec.get("baselines", {}),
+        "splits": splits,
+        "skips": skips,
+        "num_skipped": sum(s["count"] for s in skips),
+        "creator": creator,
+        "fingerprint": fingerprint,
+    }
+
+
+def load_manifest(root: str | Path) -> dict[str, Any]:
+    path = Path(root) / MANIFEST
+    if not path.exists():
+        raise UslError(f"{path}: no manifest; not a usl dataset folder, or its build has not finished")
+    try:
+        manifest = json.loads(path.read_text())
+    except json.JSONDecodeError as exc:
+        raise UslError(f"{path}: not valid JSON ({exc})") from exc
+    check_version(manifest.get("schema_version"), str(path))
+    return manifest

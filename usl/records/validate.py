@@ -1,0 +1,168 @@
+"""Checking a dataset folder against the record spec (DESIGN.md §3), shard by shard.
+
+Returns every problem found rather than stopping at the first, each naming the shard file and,
+where it applies, the scene and view, so a broken conversion can be fixed in one pass.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+import pyarrow.parquet as pq
+from tqdm import tqdm
+
+from .encode import decode_image, decode_mask
+from .errors import UslError
+from .manifest import load_manifest
+from .schema import read_metadata, table_schema
+from .shards import verify_file
+
+ORTHONORMAL_TOL = 1e-4
+MAX_PROBLEMS_PER_SHARD = 50
+
+
+def _check_camera(row: dict[str, Any]) -> list[str]:
+    problems = []
+    K = np.asarray(row["K"], dtype=np.float64).reshape(3, 3)
+    pose = np.asarray(row["cam_to_world"], dtype=np.float64).reshape(4, 4)
+    if not np.isfinite(K).all():
+        problems.append("K has non-finite entries")
+    elif abs(np.linalg.det(K)) < 1e-12:
+        problems.append("K is singular")
+    if not np.isfinite(pose).all():
+        return problems + ["cam_to_world has non-finite entries"]
+    rot = pose[:3, :3]
+    if np.abs(rot.T @ rot - np.eye(3)).max() > ORTHONORMAL_TOL or np.linalg.det(rot) < 0:
+        problems.append("cam_to_world rotation is not orthonormal with det +1")
+    if np.abs(pose[3] - [0, 0, 0, 1]).max() > 0:
+        problems.append("cam_to_world last row is not [0, 0, 0, 1]")
+    return problems
+
+
+def _check_instance(inst: dict[str, Any], height: int, width: int) -> list[str]:
+    where = f"instance {inst['instance_id']}"
+    if list(inst["mask"]["size"]) != [height, width]:
+        return [f"{where}: mask size {inst['mask']['size']} != image size [{height}, {width}]"]
+    try:
+        mask = decode_mask(inst["mask"])
+    except Exception as exc:  # pycocotools raises plain Exceptions for bad RLE
+        return [f"{where}: mask RLE does not decode ({exc})"]
+    problems = []
+    if int(mask.sum()) != inst["area"]:
+        problems.append(f"{where}: area {inst['area']} != mask pixel count {int(mask.sum())}")
+    x0, y0, x1, y1 = inst["bbox"]
+    if not (0 <= x0 < x1 <= width and 0 <= y0 < y1 <= height):
+        problems.append(f"{where}: bbox {inst['bbox']} is not inside the {width}x{height} image")
+    return problems
+
+
+def _check_frames(path: Path, shard: dict[str, Any], categories: set[int], decode_images: bool) -> list[str]:
+    problems: list[str] = []
+    file = pq.ParquetFile(path)
+    read_metadata(file.schema_arrow, str(path))
+    if not file.schema_arrow.remove_metadata().equals(table_schema("frames")):
+        return [f"{path}: Arrow schema differs from the frames schema v1"]
+    expected = {scene: (first, count) for scene, first, count in shard["scenes"]}
+    seen: dict[str, list[int]] = {}
+    categories_of: dict[tuple[str, int], int] = {}
+    previous: tuple[str, int] | None = None
+    row_index = 0
+    for batch in file.iter_batches(batch_size=64):
+        for row in batch.to_pylist():
+            key = (row["scene_id"], row["view_id"])
+            where = f"{path}: scene {row['scene_id']!r} view {row['view_id']}"
+            if previous is not None and key <= previous:
+                problems.append(f"{where}: rows not sorted by (scene_id, view_id) or duplicated")
+            if previous is not None and row["scene_id"] != previous[0] and row["scene_id"] in seen:
+                problems.append(f"{where}: scene rows are not contiguous")
+            previous = key
+            seen.setdefault(row["scene_id"], []).append(row_index)
+            problems += [f"{where}: {p}" for p in _check_camera(row)]
+            if decode_images:
+                try:
+                    image = decode_image(row["image"])
+                    if image.shape[:2] != (row["height"], row["width"]):
+                        problems.append(f"{where}: image is {image.shape[1]}x{image.shape[0]}, row says {row['width']}x{row['height']}")
+                except UslError as exc:
+                    problems.append(f"{where}: {exc}")
+            ids = [inst["instance_id"] for inst in row["instances"]]
+            if len(ids) != len(set(ids)):
+                problems.append(f"{where}: duplicate instance ids {ids}")
+            for inst in row["instances"]:
+                problems += [f"{where}: {p}" for p in _check_instance(inst, row["height"], row["width"])]
+                if inst["category_id"] not in categories:
+                    problems.append(f"{where}: instance {inst['instance_id']} has unknown category {inst['category_id']}")
+                first_cat = categories_of.setdefault((row["scene_id"], inst["instance_id"]), inst["category_id"])
+                if first_cat != inst["category_id"]:
+                    problems.append(
+                        f"{where}: instance {inst['instance_id']} is category {inst['category_id']} here but {first_cat} in another view"
+                    )
+            row_index += 1
+            if len(problems) > MAX_PROBLEMS_PER_SHARD:
+                return problems + [f"{path}: stopped after {MAX_PROBLEMS_PER_SHARD} problems"]
+    for scene, rows in seen.items():
+        if scene not in expected or expected[scene] != (rows[0], len(rows)):
+            problems.append(f"{path}: scene {scene!r} rows {rows[0]}+{len(rows)} do not match the manifest index")
+    for scene in set(expected) - set(seen):
+        problems.append(f"{path}: manifest lists scene {scene!r} but the shard has no rows for it")
+    return problems
+
+
+def _check_objects(path: Path, frames_path: Path) -> list[str]:
+    file = pq.ParquetFile(path)
+    read_metadata(file.schema_arrow, str(path))
+    if not file.schema_arrow.remove_metadata().equals(table_schema("objects")):
+        return [f"{path}: Arrow schema differs from the objects schema v1"]
+    objects = file.read(columns=["scene_id", "instance_id", "category_id", "faces", "vertices"]).to_pylist()
+    frames = pq.read_table(frames_path, columns=["scene_id", "instances"]).to_pylist()
+    seen = {(f["scene_id"], i["instance_id"]): i["category_id"] for f in frames for i in f["instances"]}
+    problems = []
+    for obj in objects:
+        where = f"{path}: scene {obj['scene_id']!r} object {obj['instance_id']}"
+        verts = np.asarray(obj["vertices"], dtype=np.float64).reshape(-1, 3)
+        faces = np.asarray(obj["faces"], dtype=np.int64).reshape(-1, 3)
+        if len(verts) == 0 or len(faces) == 0 or not np.isfinite(verts).all():
+            problems.append(f"{where}: empty mesh or non-finite vertices")
+        elif faces.min() < 0 or faces.max() >= len(verts):
+            problems.append(f"{where}: face indices outside [0, {len(verts)})")
+        category = seen.get((obj["scene_id"], obj["instance_id"]))
+        if category is not None and category != obj["category_id"]:
+            problems.append(f"{where}: category {obj['category_id']} but its masks say {category}")
+    return problems
+
+
+def validate_dataset(
+    root: str | Path, splits: list[str] | None = None, decode_images: bool = True, progress: bool = False
+) -> list[str]:
+    """All problems of a dataset folder as one-line messages; an empty list means it is valid."""
+    root = Path(root)
+    try:
+        manifest = load_manifest(root)
+    except UslError as exc:
+        return [str(exc)]
+    categories = {int(c["id"]) for c in manifest["categories"]}
+    problems: list[str] = []
+    jobs: list[tuple[str, Callable[[], list[str]]]] = []
+    for split, entry in manifest["splits"].items():
+        if splits and split not in splits:
+            continue
+        for shard in entry["shards"]:
+            frames_path = root / shard["frames"]["file"]
+            files = [shard["frames"]] + ([shard["objects"]] if shard["objects"] else [])
+            integrity = [p for p in (verify_file(root, info) for info in files) if p]
+            if integrity:
+                problems += integrity
+                continue
+            jobs.append((str(frames_path), lambda s=shard, p=frames_path: _check_frames(p, s, categories, decode_images)))
+            if shard["objects"]:
+                objects_path = root / shard["objects"]["file"]
+                jobs.append((str(objects_path), lambda o=objects_path, p=frames_path: _check_objects(o, p)))
+    for name, job in tqdm(jobs, desc="validate", unit="file", disable=not progress):
+        try:
+            problems += job()
+        except UslError as exc:
+            problems.append(str(exc))
+        except Exception as exc:  # a shard that breaks pyarrow must still be reported, not crash the check
+            problems.append(f"{name}: unreadable ({type(exc).__name__}: {exc})")
+    return problems
