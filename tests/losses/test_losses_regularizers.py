@@ -1,0 +1,88 @@
+"""Shape regularizers (numpy / trimesh oracles, float64 gradcheck) and the weighted objective."""
+import numpy as np
+import pytest
+import torch
+import trimesh
+
+from usl.geometry.icosphere import ico_sphere
+from usl.geometry.meshes import Meshes
+from usl.geometry.sampling import sample_points_from_meshes
+from usl.losses.regularizers import laplacian_smoothing_loss, mesh_edge_loss, offset_l2_loss
+from usl.losses.total import LossWeights, combine_losses
+
+DT = torch.float64
+
+
+def _two_meshes(seed: int = 0) -> tuple[list[trimesh.Trimesh], Meshes]:
+    rng = np.random.default_rng(seed)
+    a = trimesh.creation.box(extents=(1.0, 2.0, 3.0))
+    b = trimesh.creation.icosphere(subdivisions=1)
+    b.vertices = b.vertices * rng.uniform(0.5, 1.5, size=b.vertices.shape)
+    meshes = Meshes([torch.from_numpy(m.vertices.copy()) for m in (a, b)], [torch.from_numpy(m.faces) for m in (a, b)])
+    return [a, b], meshes
+
+
+def test_edge_loss_is_mean_squared_edge_length_per_mesh_then_over_meshes():
+    tms, meshes = _two_meshes()
+    per_mesh = [np.mean(np.sum((m.vertices[m.edges_unique[:, 0]] - m.vertices[m.edges_unique[:, 1]]) ** 2, 1)) for m in tms]
+    assert mesh_edge_loss(meshes).item() == pytest.approx(np.mean(per_mesh), rel=1e-12)
+
+
+def test_laplacian_loss_matches_dense_oracle():
+    tms, meshes = _two_meshes(1)
+    per_mesh = []
+    for m in tms:
+        lap = np.array([m.vertices[i] - m.vertices[n].mean(0) for i, n in enumerate(m.vertex_neighbors)])
+        per_mesh.append(np.linalg.norm(lap, axis=1).mean())
+    assert laplacian_smoothing_loss(meshes).item() == pytest.approx(np.mean(per_mesh), rel=1e-12)
+    v, f = ico_sphere(2, dtype=DT)
+    flat = Meshes.from_shared_topology(v[None] * 0, f)
+    assert laplacian_smoothing_loss(flat).item() == 0.0
+
+
+def test_offset_l2_is_half_squared_norm_averaged_over_vertices():
+    offsets = torch.tensor([[[3.0, 4.0, 0.0], [0.0, 0.0, 0.0]], [[1.0, 0.0, 0.0], [0.0, 2.0, 0.0]]], dtype=DT)
+    assert offset_l2_loss(offsets).item() == pytest.approx(0.5 * (25 + 0 + 1 + 4) / 4)
+    assert offset_l2_loss(offsets.reshape(-1, 3)).item() == pytest.approx(offset_l2_loss(offsets).item())
+
+
+def test_regularizers_gradcheck():
+    v, f = ico_sphere(0, dtype=DT)
+    gen = torch.Generator().manual_seed(2)
+    verts = (v.repeat(2, 1) + 0.1 * torch.randn(24, 3, generator=gen, dtype=DT)).requires_grad_()
+    template = Meshes.from_shared_topology(v.expand(2, -1, -1).clone(), f)
+    assert torch.autograd.gradcheck(lambda x: mesh_edge_loss(template.update_packed(x)), (verts,))
+    assert torch.autograd.gradcheck(lambda x: laplacian_smoothing_loss(template.update_packed(x)), (verts,))
+    assert torch.autograd.gradcheck(offset_l2_loss, (verts,))
+
+
+def test_recipes_and_combination():
+    assert LossWeights.recipe("scene_shapes") == LossWeights(mu_2d=0.0, edge=0.1, offset_l2=0.0)
+    assert LossWeights.recipe("hypersim") == LossWeights()
+    assert LossWeights.recipe("scannet").laplacian == 0.1
+    with pytest.raises(ValueError, match="unknown dataset"):
+        LossWeights.recipe("shapenet")
+    one = torch.tensor(1.0)
+    total, parts = combine_losses(
+        LossWeights.recipe("scannet"), l3d=2 * one, detection={"cls": one, "box": one}, offset_l2=10 * one, laplacian=3 * one
+    )
+    assert total.item() == pytest.approx(1 + 1 + 2 + 0.05 * 10 + 0.1 * 3)
+    assert set(parts) == {"det/cls", "det/box", "l3d", "offset_l2", "laplacian"}
+    total, parts = combine_losses(LossWeights.recipe("scene_shapes"), l3d=one, edge=4 * one)
+    assert total.item() == pytest.approx(1 + 0.4) and set(parts) == {"l3d", "edge"}
+    halved = LossWeights(mu_reg=0.5, mu_3d=2.0)
+    total, _ = combine_losses(halved, l3d=one, detection={}, offset_l2=one)
+    assert total.item() == pytest.approx(2 + 0.5 * 0.05)
+    with pytest.raises(ValueError, match="laplacian"):
+        combine_losses(LossWeights.recipe("scannet"), l3d=one, detection={}, offset_l2=one)
+    with pytest.raises(ValueError, match="detection"):
+        combine_losses(LossWeights.recipe("hypersim"), l3d=one, offset_l2=one)
+
+
+def test_an_image_without_objects_gives_zero_regularizers_and_no_samples():
+    _, faces = ico_sphere(1)
+    verts = torch.zeros(0, 42, 3, requires_grad=True)
+    empty = Meshes.from_shared_topology(verts, faces)
+    for loss in (mesh_edge_loss(empty), laplacian_smoothing_loss(empty), offset_l2_loss(verts)):
+        assert loss.item() == 0.0 and loss.requires_grad
+    assert sample_points_from_meshes(empty, 10).shape == (0, 10, 3)

@@ -1,0 +1,23 @@
+"""The paper's training losses: 2D silhouette losses (Sec. 3.4), shape regularizers, weighting."""
+from usl.losses.regularizers import laplacian_smoothing_loss, mesh_edge_loss, offset_l2_loss
+from usl.losses.silhouette import (
+    SilhouetteBCE,
+    l2d_loss,
+    sample_mask_points,
+    silhouette_bce_loss,
+    silhouette_chamfer_loss,
+)
+from usl.losses.total import LossWeights, combine_losses
+
+__all__ = [
+    "LossWeights",
+    "SilhouetteBCE",
+    "combine_losses",
+    "l2d_loss",
+    "laplacian_smoothing_loss",
+    "mesh_edge_loss",
+    "offset_l2_loss",
+    "sample_mask_points",
+    "silhouette_bce_loss",
+    "silhouette_chamfer_loss",
+]
