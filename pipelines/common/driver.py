@@ -81,10 +81,19 @@ def build_options_from_args(args: argparse.Namespace) -> BuildOptions:
     return BuildOptions(args.out, args.workers, args.num_shards, args.shard_index, not args.quiet)
 
 
+def _jsonable(value: Any) -> Any:
+    """Argument values as JSON can store them (paths, also inside lists, become strings)."""
+    if isinstance(value, Path):
+        return str(value)
+    if isinstance(value, (list, tuple)):
+        return [_jsonable(v) for v in value]
+    return value
+
+
 def fingerprint_from_args(args: argparse.Namespace) -> dict[str, Any]:
     """Arguments that determine the output: all but the ones that only say how to run."""
     ignored = {"out", "workers", "num_shards", "shard_index", "quiet"}
-    return {k: (str(v) if isinstance(v, Path) else v) for k, v in sorted(vars(args).items()) if k not in ignored}
+    return {k: _jsonable(v) for k, v in sorted(vars(args).items()) if k not in ignored}
 
 
 def creator_from_args(command: str, args: argparse.Namespace) -> dict[str, Any]:
@@ -97,7 +106,7 @@ def creator_from_args(command: str, args: argparse.Namespace) -> dict[str, Any]:
     return {
         "command": command,
         "argv": sys.argv[1:],
-        "arguments": {k: (str(v) if isinstance(v, Path) else v) for k, v in sorted(vars(args).items())},
+        "arguments": {k: _jsonable(v) for k, v in sorted(vars(args).items())},
         "usl_version": usl_version,
     }
 
