@@ -47,9 +47,10 @@ def encode_depth(depth_m: np.ndarray) -> bytes:
 
     Depths beyond 65.535 m do not fit and also become 0 rather than wrapping around.
     """
-    mm = np.where(np.isfinite(depth_m) & (depth_m > 0), np.rint(depth_m * DEPTH_SCALE), 0.0)
-    mm[mm > MAX_DEPTH_MM] = 0
-    ok, buf = cv2.imencode(".png", mm.astype(np.uint16))
+    mm = np.rint(np.asarray(depth_m, dtype=np.float64) * DEPTH_SCALE)
+    with np.errstate(invalid="ignore"):
+        mm[~((mm > 0) & (mm <= MAX_DEPTH_MM))] = 0  # NaN compares False, so it is cleared too
+    ok, buf = cv2.imencode(".png", mm.astype(np.uint16), [cv2.IMWRITE_PNG_COMPRESSION, 1])
     if not ok:
         raise RuntimeError("OpenCV failed to encode a depth PNG")
     return buf.tobytes()
@@ -67,7 +68,8 @@ def decode_depth(data: bytes) -> np.ndarray:
 
 def encode_mask(mask: np.ndarray) -> dict[str, Any]:
     """Boolean (H, W) mask -> COCO compressed RLE ``{"size": [H, W], "counts": str}``."""
-    rle = mask_utils.encode(np.asfortranarray(mask.astype(np.uint8)))
+    as_bytes = mask.view(np.uint8) if mask.dtype == bool else mask.astype(np.uint8)
+    rle = mask_utils.encode(np.asfortranarray(as_bytes))
     return {"size": [int(rle["size"][0]), int(rle["size"][1])], "counts": rle["counts"].decode("ascii")}
 
 
@@ -93,7 +95,7 @@ def make_instance(
 ) -> dict[str, Any]:
     """One entry of a frame's ``instances`` list, all derived from its mask (and depth)."""
     mask = np.asarray(mask, dtype=bool)
-    area = int(mask.sum())
+    area = int(np.count_nonzero(mask))
     if area == 0:
         raise ValueError(f"instance {instance_id} has an empty mask")
     depth_min = float("nan")
