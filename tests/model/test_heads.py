@@ -1,0 +1,111 @@
+import math
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from detection_oracles import roi_align_loop
+from usl.model.detector import (
+    ImageList,
+    Instances,
+    Matcher,
+    MultiScaleRoIAlign,
+    assign_boxes_to_levels,
+    mask_targets,
+    paste_masks_in_image,
+    subsample_labels,
+)
+
+
+def test_level_assignment_follows_fpn_equation():
+    sides = torch.tensor([224.0, 112.0, 111.0, 448.0, 1000.0, 10.0, 447.0])
+    boxes = torch.stack([torch.zeros(7), torch.zeros(7), sides, sides], dim=1)
+    expected = [min(max(math.floor(4 + math.log2(s / 224)), 2), 5) - 2 for s in sides.tolist()]
+    assert assign_boxes_to_levels(boxes, 2, 5, 224.0, 4).tolist() == expected == [2, 1, 0, 3, 3, 0, 2]
+
+
+def test_multiscale_pooler_pools_each_box_from_its_level():
+    generator = torch.Generator().manual_seed(0)
+    strides = [4, 8, 16]
+    features = {
+        f"p{i + 2}": torch.randn(2, 3, 64 // s, 64 // s, generator=generator, dtype=torch.float64)
+        for i, s in enumerate(strides)
+    }
+    boxes = [torch.tensor([[2.0, 3.0, 14.0, 11.0], [0.0, 0.0, 60.0, 50.0]], dtype=torch.float64),
+             torch.tensor([[10.0, 12.0, 40.0, 42.0]], dtype=torch.float64)]
+    pooler = MultiScaleRoIAlign(
+        ["p2", "p3", "p4"], strides, output_size=3, sampling_ratio=2, canonical_box_size=32, canonical_level=3
+    )
+    pooled = pooler(features, boxes)
+    for row, (image, box) in enumerate([(0, boxes[0][0]), (0, boxes[0][1]), (1, boxes[1][0])]):
+        side = math.sqrt(float((box[2] - box[0]) * (box[3] - box[1])))
+        level = min(max(math.floor(3 + math.log2(side / 32)), 2), 4)
+        roi = torch.cat([torch.tensor([float(image)], dtype=torch.float64), box])[None]
+        expected = roi_align_loop(features[f"p{level}"], roi, (3, 3), 1.0 / 2**level, 2, True)[0]
+        torch.testing.assert_close(pooled[row], expected)
+
+
+def test_matcher_bands_and_low_quality_matches():
+    iou = torch.tensor([[0.9, 0.5, 0.2, 0.0], [0.1, 0.65, 0.25, 0.0]])
+    matches, labels = Matcher([0.3, 0.7], [0, -1, 1], allow_low_quality_matches=False)(iou)
+    assert matches.tolist() == [0, 1, 1, 0] and labels.tolist() == [1, -1, 0, 0]
+    _, labels = Matcher([0.3, 0.7], [0, -1, 1], allow_low_quality_matches=True)(iou)
+    assert labels.tolist() == [1, 1, 0, 0]  # gt 1's best prediction (0.65) is promoted
+    matches, labels = Matcher([0.5], [0, 1])(torch.zeros(0, 3))
+    assert labels.tolist() == [0, 0, 0]
+
+
+def test_subsample_labels_respects_budget_and_fraction():
+    torch.manual_seed(0)
+    labels = torch.tensor([1] * 10 + [0] * 100 + [-1] * 5)
+    positive, negative = subsample_labels(labels, 16, 0.25)
+    assert len(positive) == 4 and len(negative) == 12
+    assert (labels[positive] == 1).all() and (labels[negative] == 0).all()
+    positive, negative = subsample_labels(torch.tensor([1, 0, 0]), 16, 0.5)
+    assert len(positive) == 1 and len(negative) == 2
+
+
+def test_paste_masks_matches_opencv_resize_inside_the_box():
+    generator = torch.Generator().manual_seed(1)
+    mask = torch.rand(28, 28, generator=generator)
+    box = torch.tensor([[10.0, 20.0, 66.0, 104.0]])  # 56 x 84 px: scale 2 in x, 3 in y
+    pasted = paste_masks_in_image(mask[None], box, (120, 90), threshold=None)[0]
+    expected = cv2.resize(mask.numpy(), (56, 84), interpolation=cv2.INTER_LINEAR)
+    # cv2 replicates the border, pasting fades to zero outside the box: compare off the edge pixel.
+    np.testing.assert_allclose(pasted[21:103, 11:65].numpy(), expected[1:-1, 1:-1], atol=1e-5)
+    outside = torch.ones(120, 90, dtype=torch.bool)
+    outside[19:105, 9:67] = False
+    assert pasted[outside].abs().max() < 1e-6  # (float rounding at the exact -1 grid edge)
+    binary = paste_masks_in_image(mask[None], box, (120, 90), threshold=0.5)
+    assert binary.dtype == torch.bool and torch.equal(binary[0], pasted >= 0.5)
+
+
+def test_mask_targets_crop_the_matched_mask():
+    masks = torch.zeros(2, 40, 40, dtype=torch.bool)
+    masks[0, 10:30, 4:20] = True
+    masks[1, :, 20:] = True
+    boxes = torch.tensor([[4.0, 10.0, 20.0, 30.0], [4.0, 10.0, 36.0, 30.0], [12.0, 0.0, 28.0, 40.0]])
+    targets = mask_targets(masks, torch.tensor([0, 0, 1]), boxes, 8)
+    assert targets[0].all()
+    assert targets[1][:, :4].all() and not targets[1][:, 4:].any()  # the mask fills the box's left half
+    assert not targets[2][:, :4].any() and targets[2][:, 4:].all()
+
+
+def test_instances_index_cat_and_validation():
+    inst = Instances((10, 20), boxes=torch.zeros(3, 4), scores=torch.tensor([0.1, 0.9, 0.5]))
+    top = inst[inst.scores > 0.3]
+    assert len(top) == 2 and top.image_size == (10, 20) and top.scores.tolist() == pytest.approx([0.9, 0.5])
+    assert len(Instances.cat([inst, top])) == 5 and len(inst[1]) == 1
+    with pytest.raises(ValueError, match="rows"):
+        inst.labels = torch.zeros(2)
+    with pytest.raises(AttributeError, match="no field"):
+        inst.masks
+
+
+def test_image_list_pads_to_divisibility():
+    images = ImageList.from_tensor(torch.ones(2, 3, 50, 70), [(50, 70), (40, 33)], size_divisibility=32)
+    assert images.tensor.shape == (2, 3, 64, 96) and images.image_sizes == [(50, 70), (40, 33)]
+    assert images.tensor[:, :, 50:].abs().sum() == 0
+    with pytest.raises(ValueError, match="does not fit"):
+        ImageList.from_tensor(torch.ones(1, 3, 8, 8), [(9, 8)])

@@ -1,0 +1,92 @@
+import itertools
+
+import pytest
+import torch
+
+from detection_oracles import roi_align_loop, torchvision_ops
+from usl.model.ops import RoIAlign, convert_boxes_to_rois, roi_align
+
+TV = torchvision_ops()
+
+
+def random_rois(generator, count, num_images, extent, dtype=torch.float64):
+    """Boxes of all sizes, many partly (some wholly) outside a map of ``extent`` pixels."""
+    xy = torch.rand(count, 2, generator=generator, dtype=dtype) * (extent * 1.4) - extent * 0.3
+    wh = torch.rand(count, 2, generator=generator, dtype=dtype) * extent * 0.8 + 0.1
+    batch = torch.randint(0, num_images, (count, 1), generator=generator).to(dtype)
+    rois = torch.cat([batch, xy, xy + wh], dim=1)
+    rois[0, 3:] = rois[0, 1:3]  # a degenerate (zero-size) box
+    rois[1, 1:] = torch.tensor([-9.0, -9.0, -4.0, -3.0], dtype=dtype)  # wholly outside
+    return rois
+
+
+@pytest.mark.parametrize(
+    "aligned,sampling_ratio,spatial_scale", list(itertools.product([True, False], [-1, 1, 2], [1.0, 0.5, 0.3]))
+)
+def test_matches_loop_reference(aligned, sampling_ratio, spatial_scale):
+    generator = torch.Generator().manual_seed(hash((aligned, sampling_ratio, spatial_scale)) % 1000)
+    features = torch.randn(2, 3, 9, 11, generator=generator, dtype=torch.float64)
+    rois = random_rois(generator, 10, 2, 11 / spatial_scale)
+    expected = roi_align_loop(features, rois, (3, 4), spatial_scale, sampling_ratio, aligned)
+    actual = roi_align(features, rois, (3, 4), spatial_scale, sampling_ratio, aligned)
+    torch.testing.assert_close(actual, expected, rtol=0, atol=1e-12)
+
+
+def test_adaptive_grid_with_large_and_small_boxes_and_tiny_chunks():
+    """Heterogeneous adaptive grids (1..~8 samples per bin) and a budget forcing one RoI per chunk."""
+    generator = torch.Generator().manual_seed(3)
+    features = torch.randn(1, 2, 40, 30, generator=generator, dtype=torch.float64)
+    rois = torch.tensor(
+        [[0, 1.0, 2.0, 3.0, 3.5], [0, -5.0, -2.0, 33.0, 41.0], [0, 4.0, 4.0, 20.0, 9.0]], dtype=torch.float64
+    )
+    expected = roi_align_loop(features, rois, (5, 5), 1.0, 0, True)
+    for budget in (1, 10**9):
+        actual = roi_align(features, rois, 5, 1.0, 0, True, max_chunk_elements=budget)
+        torch.testing.assert_close(actual, expected, rtol=0, atol=1e-12)
+
+
+def test_list_of_boxes_equals_rois_tensor_and_module():
+    generator = torch.Generator().manual_seed(4)
+    features = torch.randn(2, 4, 8, 8, generator=generator)
+    boxes = [torch.tensor([[1.0, 1.0, 6.0, 5.0]]), torch.tensor([[0.0, 2.0, 7.5, 7.0], [2.0, 2.0, 3.0, 3.0]])]
+    rois = convert_boxes_to_rois(boxes, features)
+    assert rois[:, 0].tolist() == [0, 1, 1]
+    module = RoIAlign((2, 2), spatial_scale=1.0, sampling_ratio=2, aligned=True)
+    torch.testing.assert_close(module(features, boxes), roi_align(features, rois, 2, 1.0, 2, True))
+
+
+def test_empty_rois_and_bad_batch_index():
+    features = torch.randn(1, 3, 5, 5)
+    assert roi_align(features, torch.zeros(0, 5), 2).shape == (0, 3, 2, 2)
+    with pytest.raises(ValueError, match="batch indices"):
+        roi_align(features, torch.tensor([[1.0, 0, 0, 2, 2]]), 2)
+
+
+def test_bool_input_pooled_as_float():
+    mask = torch.zeros(1, 1, 6, 6, dtype=torch.bool)
+    mask[..., :, :3] = True
+    pooled = roi_align(mask, torch.tensor([[0.0, 0.0, 0.0, 6.0, 6.0]]), 2, 1.0, 2, True)
+    assert pooled.dtype == torch.float32
+    torch.testing.assert_close(pooled[0, 0], torch.tensor([[1.0, 0.0], [1.0, 0.0]]))
+
+
+@pytest.mark.parametrize("aligned,sampling_ratio", [(True, -1), (False, 2)])
+def test_gradcheck_float64(aligned, sampling_ratio):
+    generator = torch.Generator().manual_seed(5)
+    features = torch.randn(2, 2, 5, 6, generator=generator, dtype=torch.float64, requires_grad=True)
+    rois = torch.tensor(
+        [[0, 0.3, 0.7, 4.2, 3.9], [1, -1.2, 1.1, 3.3, 6.0], [1, 2.2, 0.4, 7.1, 2.5]], dtype=torch.float64
+    )
+    assert torch.autograd.gradcheck(
+        lambda x: roi_align(x, rois, (2, 3), 0.8, sampling_ratio, aligned), (features,), eps=1e-6, atol=1e-8
+    )
+
+
+@pytest.mark.skipif(TV is None, reason="torchvision ops do not run with this torch")
+@pytest.mark.parametrize("aligned,sampling_ratio", [(True, 0), (False, 2)])
+def test_equals_torchvision(aligned, sampling_ratio):
+    generator = torch.Generator().manual_seed(6)
+    features = torch.randn(2, 3, 12, 10, generator=generator)
+    rois = random_rois(generator, 20, 2, 20, dtype=torch.float32)
+    expected = TV.roi_align(features, rois, (4, 4), 0.5, sampling_ratio, aligned)
+    torch.testing.assert_close(roi_align(features, rois, (4, 4), 0.5, sampling_ratio, aligned), expected)

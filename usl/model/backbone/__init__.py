@@ -1,0 +1,28 @@
+"""Backbones: torchvision-compatible ResNets and a Feature Pyramid Network."""
+from .build import BackboneConfig, FPNConfig, ResNetConfig, ResNetFPN, ShapeSpec, build_backbone, build_resnet_fpn
+from .fpn import FPN
+from .norm import FrozenBatchNorm2d, freeze_batch_norms
+from .registry import BACKBONES, Registry
+from .resnet import IMAGENET_MEAN, IMAGENET_STD, ResNet
+from .weights import WeightsError, load_weights, read_state_dict
+
+__all__ = [
+    "BACKBONES",
+    "BackboneConfig",
+    "FPN",
+    "FPNConfig",
+    "FrozenBatchNorm2d",
+    "IMAGENET_MEAN",
+    "IMAGENET_STD",
+    "Registry",
+    "ResNet",
+    "ResNetConfig",
+    "ResNetFPN",
+    "ShapeSpec",
+    "WeightsError",
+    "build_backbone",
+    "build_resnet_fpn",
+    "freeze_batch_norms",
+    "load_weights",
+    "read_state_dict",
+]

@@ -1,0 +1,102 @@
+"""Fast R-CNN box branch: 2 FC layers, class scores and class-specific box deltas."""
+from __future__ import annotations
+
+from typing import Sequence
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from ..ops import Box2BoxTransform, batched_nms, clip_boxes
+from .config import BoxHeadConfig
+from .structures import Instances
+
+Tensor = torch.Tensor
+
+
+class FastRCNNFCHead(nn.Module):
+    """Flatten pooled RoI features and apply ``num_fc`` ReLU FC layers (``fc_dim`` wide)."""
+
+    def __init__(self, in_channels: int, resolution: int, num_fc: int, fc_dim: int):
+        super().__init__()
+        dims = [in_channels * resolution * resolution] + [fc_dim] * num_fc
+        self.fcs = nn.ModuleList(nn.Linear(a, b) for a, b in zip(dims[:-1], dims[1:]))
+        for fc in self.fcs:
+            nn.init.kaiming_uniform_(fc.weight, a=1)
+            nn.init.zeros_(fc.bias)
+        self.output_dim = dims[-1]
+
+    def forward(self, x: Tensor) -> Tensor:
+        x = x.flatten(1)
+        for fc in self.fcs:
+            x = F.relu(fc(x))
+        return x
+
+
+class FastRCNNOutputLayers(nn.Module):
+    """Scores over ``num_classes + 1`` (background is the LAST index) and 4 deltas per class."""
+
+    def __init__(self, in_dim: int, num_classes: int, cfg: BoxHeadConfig):
+        super().__init__()
+        self.num_classes = num_classes
+        self.cfg = cfg
+        self.cls_score = nn.Linear(in_dim, num_classes + 1)
+        self.bbox_pred = nn.Linear(in_dim, num_classes * 4)
+        nn.init.normal_(self.cls_score.weight, std=0.01)
+        nn.init.normal_(self.bbox_pred.weight, std=0.001)
+        nn.init.zeros_(self.cls_score.bias)
+        nn.init.zeros_(self.bbox_pred.bias)
+        self.box2box = Box2BoxTransform(cfg.bbox_reg_weights)
+
+    def forward(self, x: Tensor) -> tuple[Tensor, Tensor]:
+        return self.cls_score(x), self.bbox_pred(x)
+
+    def losses(self, logits: Tensor, deltas: Tensor, proposals: Sequence[Instances]) -> dict[str, Tensor]:
+        """Cross-entropy over sampled proposals and L1/smooth-L1 on foreground deltas of their class.
+
+        Both are normalised by the number of sampled proposals (detectron2's choice).
+        """
+        gt_classes = torch.cat([p.gt_classes for p in proposals])
+        if gt_classes.numel() == 0:
+            zero = logits.sum() * 0.0 + deltas.sum() * 0.0
+            return {"loss_cls": zero, "loss_box_reg": zero}
+        proposal_boxes = torch.cat([p.proposal_boxes for p in proposals])
+        gt_boxes = torch.cat([p.gt_boxes for p in proposals])
+        foreground = torch.nonzero(gt_classes < self.num_classes).squeeze(1)
+        predicted = deltas.view(len(deltas), self.num_classes, 4)[foreground, gt_classes[foreground]]
+        target = self.box2box.get_deltas(proposal_boxes[foreground], gt_boxes[foreground])
+        loss_box = F.smooth_l1_loss(predicted, target, beta=self.cfg.smooth_l1_beta, reduction="sum")
+        weight = self.cfg.loss_weight
+        return {
+            "loss_cls": F.cross_entropy(logits, gt_classes) * weight,
+            "loss_box_reg": loss_box / gt_classes.numel() * weight,
+        }
+
+    @torch.no_grad()
+    def inference(
+        self,
+        logits: Tensor,
+        deltas: Tensor,
+        proposals: Sequence[Instances],
+        score_thresh: float,
+        nms_thresh: float,
+        max_detections: int,
+    ) -> list[Instances]:
+        """Per image: decode every class's box, keep scores > ``score_thresh``, per-class NMS, top-k.
+
+        Returns Instances with ``pred_boxes``, ``scores``, ``pred_classes``.
+        """
+        counts = [len(p) for p in proposals]
+        results = []
+        for image_logits, image_deltas, proposal in zip(logits.split(counts), deltas.split(counts), proposals):
+            boxes = self.box2box.apply_deltas(image_deltas, proposal.proposal_boxes)
+            boxes = clip_boxes(boxes.view(-1, self.num_classes, 4), proposal.image_size)
+            scores = F.softmax(image_logits, dim=1)[:, :-1]
+            finite = torch.isfinite(boxes).all(dim=2) & torch.isfinite(scores)
+            rows, classes = torch.nonzero((scores > score_thresh) & finite, as_tuple=True)
+            boxes, scores = boxes[rows, classes], scores[rows, classes]
+            keep = batched_nms(boxes, scores, classes, nms_thresh)[:max_detections]
+            results.append(
+                Instances(proposal.image_size, pred_boxes=boxes[keep], scores=scores[keep], pred_classes=classes[keep])
+            )
+        return results

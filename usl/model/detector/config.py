@@ -1,0 +1,99 @@
+"""Detector configuration as nested dataclasses (defaults: Mask R-CNN R50-FPN, detectron2 recipe)."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from ..backbone import BackboneConfig
+
+
+@dataclass
+class AnchorConfig:
+    sizes: tuple[tuple[float, ...], ...] = ((32,), (64,), (128,), (256,), (512,))  # one tuple per RPN level
+    aspect_ratios: tuple[float, ...] = (0.5, 1.0, 2.0)  # height / width
+    offset: float = 0.0
+
+
+@dataclass
+class RPNConfig:
+    in_features: tuple[str, ...] = ("p2", "p3", "p4", "p5", "p6")
+    anchors: AnchorConfig = field(default_factory=AnchorConfig)
+    iou_thresholds: tuple[float, float] = (0.3, 0.7)  # below: background, above: foreground
+    batch_size_per_image: int = 256
+    positive_fraction: float = 0.5
+    bbox_reg_weights: tuple[float, float, float, float] = (1.0, 1.0, 1.0, 1.0)
+    smooth_l1_beta: float = 0.0  # 0 gives the L1 loss
+    pre_nms_topk_train: int = 2000  # per level
+    pre_nms_topk_test: int = 1000  # per level
+    post_nms_topk_train: int = 1000  # per image
+    post_nms_topk_test: int = 1000  # per image
+    nms_thresh: float = 0.7
+    min_box_size: float = 0.0
+    loss_weight: float = 1.0
+
+
+@dataclass
+class BoxHeadConfig:
+    pooler_resolution: int = 7
+    pooler_sampling_ratio: int = 0  # <= 0: adaptive
+    num_fc: int = 2
+    fc_dim: int = 1024
+    bbox_reg_weights: tuple[float, float, float, float] = (10.0, 10.0, 5.0, 5.0)
+    smooth_l1_beta: float = 0.0
+    loss_weight: float = 1.0
+
+
+@dataclass
+class MaskHeadConfig:
+    enabled: bool = True
+    pooler_resolution: int = 14  # masks are predicted at twice this (28x28)
+    pooler_sampling_ratio: int = 0
+    num_conv: int = 4
+    conv_dim: int = 256
+    loss_weight: float = 1.0
+
+
+@dataclass
+class ROIHeadsConfig:
+    name: str = "standard"  # key in ROI_HEADS
+    in_features: tuple[str, ...] = ("p2", "p3", "p4", "p5")
+    batch_size_per_image: int = 512
+    positive_fraction: float = 0.25
+    iou_threshold: float = 0.5  # proposals at or above it are foreground
+    proposal_append_gt: bool = True
+    canonical_box_size: float = 224.0  # a box of this size is pooled from canonical_level (FPN paper, eq. 1)
+    canonical_level: int = 4
+    score_thresh_test: float = 0.05
+    nms_thresh_test: float = 0.5
+    detections_per_image: int = 100
+    mask_threshold: float = 0.5  # pasted mask probabilities at or above it are foreground
+    box_head: BoxHeadConfig = field(default_factory=BoxHeadConfig)
+    mask_head: MaskHeadConfig = field(default_factory=MaskHeadConfig)
+
+
+@dataclass
+class DetectorConfig:
+    backbone: BackboneConfig = field(default_factory=BackboneConfig)
+    rpn: RPNConfig = field(default_factory=RPNConfig)
+    roi_heads: ROIHeadsConfig = field(default_factory=ROIHeadsConfig)
+
+    @classmethod
+    def tiny(cls) -> "DetectorConfig":
+        """A few-hundred-K-parameter Mask R-CNN for ~128x128 images, trainable on a CPU in seconds."""
+        return cls(
+            backbone=BackboneConfig.tiny(),
+            rpn=RPNConfig(
+                anchors=AnchorConfig(sizes=((8,), (16,), (32,), (64,), (128,))),
+                batch_size_per_image=128,
+                pre_nms_topk_train=100,
+                pre_nms_topk_test=100,
+                post_nms_topk_train=64,
+                post_nms_topk_test=50,
+            ),
+            roi_heads=ROIHeadsConfig(
+                batch_size_per_image=64,
+                canonical_box_size=56.0,
+                detections_per_image=20,
+                box_head=BoxHeadConfig(fc_dim=128),
+                mask_head=MaskHeadConfig(num_conv=2, conv_dim=32),
+            ),
+        )

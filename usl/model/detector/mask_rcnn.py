@@ -1,0 +1,109 @@
+"""Mask R-CNN: backbone -> RPN -> RoI heads, with dict-based inputs and outputs."""
+from __future__ import annotations
+
+from typing import Optional, Sequence, Union
+
+import torch
+from torch import nn
+
+from ..backbone import build_backbone
+from .config import DetectorConfig
+from .roi_heads import build_roi_heads
+from .rpn import RPN
+from .structures import ImageList, Instances
+
+Tensor = torch.Tensor
+
+
+class InvalidTargetError(ValueError):
+    """A training target dict does not follow the documented layout."""
+
+
+class MaskRCNN(nn.Module):
+    """Mask R-CNN detector for ``num_classes`` categories (labels ``0 .. num_classes - 1``).
+
+    Parts are public so later heads can reuse them: ``backbone(images)`` gives the FPN
+    feature dict, ``proposal_generator`` the RPN, ``roi_heads.box_pooler(features, boxes)``
+    pooled RoI features.
+    """
+
+    def __init__(self, num_classes: int, cfg: Optional[DetectorConfig] = None):
+        super().__init__()
+        if num_classes < 1:
+            raise ValueError(f"num_classes must be positive, got {num_classes}")
+        self.cfg = cfg or DetectorConfig()
+        self.num_classes = num_classes
+        self.backbone = build_backbone(self.cfg.backbone)
+        shapes = self.backbone.output_shape()
+        self.proposal_generator = RPN(self.cfg.rpn, shapes)
+        self.roi_heads = build_roi_heads(self.cfg.roi_heads, num_classes, shapes)
+
+    def preprocess(self, images: Tensor, image_sizes: Optional[Sequence[tuple[int, int]]] = None) -> ImageList:
+        """Pad normalised images (N, 3, H, W) so every FPN level aligns."""
+        return ImageList.from_tensor(images, image_sizes, self.backbone.size_divisibility)
+
+    def forward(
+        self,
+        images: Tensor,
+        image_sizes: Optional[Sequence[tuple[int, int]]] = None,
+        targets: Optional[Sequence[dict[str, Tensor]]] = None,
+    ) -> Union[dict[str, Tensor], list[dict[str, Tensor]]]:
+        """Training: a dict of named losses. Eval: per image ``{boxes, scores, labels, masks}``.
+
+        Args:
+            images: normalised images (N, 3, H, W); image ``i`` occupies ``[:h_i, :w_i]``.
+            image_sizes: ``(h_i, w_i)`` per image; default: all ``(H, W)``.
+            targets: training only; per image ``boxes`` (K, 4) xyxy pixels, ``labels`` (K,)
+                long in ``[0, num_classes)``, ``masks`` (K, h_i, w_i) bool (if the mask head is on).
+        Eval boxes are in input pixels; ``masks`` are bool (K, h_i, w_i).
+        """
+        image_list = self.preprocess(images, image_sizes)
+        gt = self.targets_to_instances(targets, image_list.image_sizes) if targets is not None else None
+        if self.training and gt is None:
+            raise ValueError("MaskRCNN needs targets in training mode")
+        features = self.backbone(image_list.tensor)
+        proposals, rpn_losses = self.proposal_generator(image_list, features, gt)
+        instances, roi_losses = self.roi_heads(features, proposals, gt)
+        if self.training:
+            return {**rpn_losses, **roi_losses}
+        return [self.instances_to_dict(d) for d in instances]
+
+    def targets_to_instances(
+        self, targets: Sequence[dict[str, Tensor]], image_sizes: Sequence[tuple[int, int]]
+    ) -> list[Instances]:
+        """Validate target dicts and convert them to Instances (``gt_boxes``, ``gt_classes``, ``gt_masks``)."""
+        if len(targets) != len(image_sizes):
+            raise InvalidTargetError(f"{len(targets)} targets for {len(image_sizes)} images")
+        device = next(self.parameters()).device
+        converted = []
+        for index, (target, size) in enumerate(zip(targets, image_sizes)):
+            boxes, labels = target.get("boxes"), target.get("labels")
+            if boxes is None or labels is None:
+                raise InvalidTargetError(f"target {index} needs 'boxes' and 'labels', has {sorted(target)}")
+            if boxes.dim() != 2 or boxes.shape[1] != 4 or labels.shape != boxes.shape[:1]:
+                raise InvalidTargetError(
+                    f"target {index}: boxes must be (K, 4) and labels (K,), "
+                    f"got {tuple(boxes.shape)} and {tuple(labels.shape)}"
+                )
+            if labels.numel() and (int(labels.min()) < 0 or int(labels.max()) >= self.num_classes):
+                raise InvalidTargetError(
+                    f"target {index}: labels must lie in [0, {self.num_classes}), got {labels.tolist()}"
+                )
+            fields = {"gt_boxes": boxes.to(device, torch.float32), "gt_classes": labels.to(device, torch.long)}
+            if self.roi_heads.mask_on:
+                masks = target.get("masks")
+                if masks is None or tuple(masks.shape) != (len(boxes), *size):
+                    shape = None if masks is None else tuple(masks.shape)
+                    raise InvalidTargetError(
+                        f"target {index}: masks must be (K, h, w) = {(len(boxes), *size)}, got {shape}"
+                    )
+                fields["gt_masks"] = masks.to(device, torch.bool)
+            converted.append(Instances(size, **fields))
+        return converted
+
+    @staticmethod
+    def instances_to_dict(detections: Instances) -> dict[str, Tensor]:
+        output = {"boxes": detections.pred_boxes, "scores": detections.scores, "labels": detections.pred_classes}
+        if detections.has("pred_masks"):
+            output["masks"] = detections.pred_masks
+        return output

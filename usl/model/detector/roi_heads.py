@@ -1,0 +1,151 @@
+"""Standard Mask R-CNN RoI heads: proposal sampling, the box branch and the mask branch.
+
+Subclass :class:`StandardROIHeads` (and register it in ``ROI_HEADS``) to add branches;
+``box_pooler`` / ``mask_pooler`` pool RoI features from the backbone's feature dict for
+any boxes, and in training :meth:`label_and_sample_proposals` records which ground
+truth each sampled proposal matched (``gt_index``).
+"""
+from __future__ import annotations
+
+from typing import Mapping, Optional
+
+import torch
+from torch import nn
+
+from ..backbone import Registry, ShapeSpec
+from ..ops import box_iou
+from .box_head import FastRCNNFCHead, FastRCNNOutputLayers
+from .config import ROIHeadsConfig
+from .mask_head import MaskRCNNConvUpsampleHead, mask_rcnn_loss, mask_targets, paste_masks_in_image, select_class_masks
+from .matcher import Matcher, subsample_labels
+from .poolers import MultiScaleRoIAlign
+from .structures import Instances
+
+Tensor = torch.Tensor
+
+ROI_HEADS = Registry("ROI heads")
+
+
+@ROI_HEADS.register("standard")
+class StandardROIHeads(nn.Module):
+    """Box head (always) and mask head (``cfg.mask_head.enabled``) over sampled proposals.
+
+    ``forward`` returns ``(instances, losses)``: in training the sampled proposals (fields
+    ``proposal_boxes``, ``gt_classes``, ``gt_boxes``, ``gt_index``) and the branch losses;
+    in eval the detections (``pred_boxes``, ``scores``, ``pred_classes``, ``pred_masks``) and ``{}``.
+    """
+
+    def __init__(self, cfg: ROIHeadsConfig, num_classes: int, input_shape: Mapping[str, ShapeSpec]):
+        super().__init__()
+        self.cfg = cfg
+        self.num_classes = num_classes
+        shapes = [input_shape[name] for name in cfg.in_features]
+        channels = shapes[0].channels
+        strides = [s.stride for s in shapes]
+        self.matcher = Matcher([cfg.iou_threshold], [0, 1], allow_low_quality_matches=False)
+        box_cfg = cfg.box_head
+        self.box_pooler = self._pooler(box_cfg.pooler_resolution, box_cfg.pooler_sampling_ratio, strides)
+        self.box_head = FastRCNNFCHead(channels, box_cfg.pooler_resolution, box_cfg.num_fc, box_cfg.fc_dim)
+        self.box_predictor = FastRCNNOutputLayers(self.box_head.output_dim, num_classes, box_cfg)
+        self.mask_on = cfg.mask_head.enabled
+        if self.mask_on:
+            mask_cfg = cfg.mask_head
+            self.mask_pooler = self._pooler(mask_cfg.pooler_resolution, mask_cfg.pooler_sampling_ratio, strides)
+            self.mask_head = MaskRCNNConvUpsampleHead(channels, num_classes, mask_cfg.num_conv, mask_cfg.conv_dim)
+
+    def _pooler(self, resolution: int, sampling_ratio: int, strides: list[int]) -> MultiScaleRoIAlign:
+        cfg = self.cfg
+        return MultiScaleRoIAlign(
+            cfg.in_features, strides, resolution, sampling_ratio, cfg.canonical_box_size, cfg.canonical_level
+        )
+
+    def forward(
+        self,
+        features: Mapping[str, Tensor],
+        proposals: list[Instances],
+        targets: Optional[list[Instances]] = None,
+    ) -> tuple[list[Instances], dict[str, Tensor]]:
+        if self.training:
+            if targets is None:
+                raise ValueError("ROI heads need targets in training mode")
+            proposals = self.label_and_sample_proposals(proposals, targets)
+            losses = self.forward_box(features, proposals)
+            if self.mask_on:
+                losses.update(self.forward_mask(features, proposals, targets))
+            return proposals, losses
+        detections = self.forward_box(features, proposals)
+        if self.mask_on:
+            detections = self.forward_mask(features, detections)
+        return detections, {}
+
+    @torch.no_grad()
+    def label_and_sample_proposals(self, proposals: list[Instances], targets: list[Instances]) -> list[Instances]:
+        """Match proposals (plus the gt boxes themselves) to gt and sample a fg/bg mix per image.
+
+        Background proposals get class ``num_classes`` and ``gt_index`` -1.
+        """
+        sampled = []
+        for proposal, target in zip(proposals, targets):
+            boxes = proposal.proposal_boxes
+            if self.cfg.proposal_append_gt:
+                boxes = torch.cat([boxes, target.gt_boxes.to(boxes.dtype)])
+            matches, labels = self.matcher(box_iou(target.gt_boxes, boxes))
+            positive, negative = subsample_labels(labels, self.cfg.batch_size_per_image, self.cfg.positive_fraction)
+            keep = torch.cat([positive, negative])
+            is_foreground = torch.arange(len(keep), device=keep.device) < len(positive)
+            matched = matches[keep]
+            if len(target):
+                gt_classes = torch.where(is_foreground, target.gt_classes[matched], self.num_classes)
+                gt_boxes = target.gt_boxes[matched]
+            else:
+                gt_classes = torch.full_like(matched, self.num_classes)
+                gt_boxes = torch.zeros_like(boxes[keep])
+            sampled.append(
+                Instances(
+                    proposal.image_size,
+                    proposal_boxes=boxes[keep],
+                    gt_classes=gt_classes,
+                    gt_boxes=gt_boxes,
+                    gt_index=torch.where(is_foreground, matched, -1),
+                )
+            )
+        return sampled
+
+    def forward_box(self, features: Mapping[str, Tensor], proposals: list[Instances]):
+        """Training: box losses; eval: detections after score threshold, per-class NMS and top-k."""
+        pooled = self.box_pooler(features, [p.proposal_boxes for p in proposals])
+        logits, deltas = self.box_predictor(self.box_head(pooled))
+        if self.training:
+            return self.box_predictor.losses(logits, deltas, proposals)
+        cfg = self.cfg
+        return self.box_predictor.inference(
+            logits, deltas, proposals, cfg.score_thresh_test, cfg.nms_thresh_test, cfg.detections_per_image
+        )
+
+    def forward_mask(
+        self, features: Mapping[str, Tensor], instances: list[Instances], targets: Optional[list[Instances]] = None
+    ):
+        """Training: ``loss_mask`` on foreground proposals; eval: adds ``pred_masks`` (bool, H x W)."""
+        if self.training:
+            foreground = [p[p.gt_index >= 0] for p in instances]
+            mask_logits = self.mask_head(self.mask_pooler(features, [p.proposal_boxes for p in foreground]))
+            resolution = mask_logits.shape[-1]
+            targets_per_box = [
+                mask_targets(t.gt_masks, p.gt_index, p.proposal_boxes, resolution)
+                for p, t in zip(foreground, targets)
+                if len(p)
+            ]
+            classes = torch.cat([p.gt_classes for p in foreground])
+            gt = torch.cat(targets_per_box) if targets_per_box else mask_logits.new_zeros((0, resolution, resolution))
+            return {"loss_mask": mask_rcnn_loss(mask_logits, classes, gt) * self.cfg.mask_head.loss_weight}
+        mask_logits = self.mask_head(self.mask_pooler(features, [d.pred_boxes for d in instances]))
+        probabilities = select_class_masks(mask_logits, torch.cat([d.pred_classes for d in instances]))
+        for detections, probs in zip(instances, probabilities.split([len(d) for d in instances])):
+            detections.pred_masks = paste_masks_in_image(
+                probs, detections.pred_boxes, detections.image_size, self.cfg.mask_threshold
+            )
+        return instances
+
+
+def build_roi_heads(cfg: ROIHeadsConfig, num_classes: int, input_shape: Mapping[str, ShapeSpec]) -> nn.Module:
+    return ROI_HEADS.get(cfg.name)(cfg, num_classes, input_shape)

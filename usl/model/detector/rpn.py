@@ -1,0 +1,137 @@
+"""Region Proposal Network (Ren et al. 2015) over FPN levels, with its training losses."""
+from __future__ import annotations
+
+from typing import Mapping, Optional
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from ..backbone import ShapeSpec
+from ..ops import AnchorGenerator, Box2BoxTransform, batched_nms, box_iou, clip_boxes, nonempty_boxes
+from .config import RPNConfig
+from .matcher import IGNORE, Matcher, subsample_labels
+from .structures import ImageList, Instances
+
+Tensor = torch.Tensor
+
+
+class RPNHead(nn.Module):
+    """Shared 3x3 conv, then per anchor an objectness logit and 4 box deltas, on every level."""
+
+    def __init__(self, channels: int, num_anchors: int):
+        super().__init__()
+        self.conv = nn.Conv2d(channels, channels, 3, padding=1)
+        self.objectness_logits = nn.Conv2d(channels, num_anchors, 1)
+        self.anchor_deltas = nn.Conv2d(channels, num_anchors * 4, 1)
+        for layer in (self.conv, self.objectness_logits, self.anchor_deltas):
+            nn.init.normal_(layer.weight, std=0.01)
+            nn.init.zeros_(layer.bias)
+
+    def forward(self, features: list[Tensor]) -> tuple[list[Tensor], list[Tensor]]:
+        """Per level: logits (N, H*W*A) and deltas (N, H*W*A, 4), in the anchors' order."""
+        logits, deltas = [], []
+        for x in features:
+            hidden = F.relu(self.conv(x))
+            n, _, h, w = x.shape
+            logits.append(self.objectness_logits(hidden).permute(0, 2, 3, 1).reshape(n, -1))
+            deltas.append(self.anchor_deltas(hidden).view(n, -1, 4, h, w).permute(0, 3, 4, 1, 2).reshape(n, -1, 4))
+        return logits, deltas
+
+
+class RPN(nn.Module):
+    """Proposes class-agnostic boxes; in training also returns ``loss_rpn_cls`` and ``loss_rpn_loc``."""
+
+    def __init__(self, cfg: RPNConfig, input_shape: Mapping[str, ShapeSpec]):
+        super().__init__()
+        self.cfg = cfg
+        self.in_features = list(cfg.in_features)
+        shapes = [input_shape[name] for name in self.in_features]
+        if len({s.channels for s in shapes}) != 1:
+            raise ValueError(f"RPN levels must share a channel count, got {shapes}")
+        self.anchor_generator = AnchorGenerator(
+            cfg.anchors.sizes, cfg.anchors.aspect_ratios, [s.stride for s in shapes], cfg.anchors.offset
+        )
+        num_anchors = set(self.anchor_generator.num_anchors_per_location)
+        if len(num_anchors) != 1:
+            raise ValueError("every RPN level needs the same number of anchors per location")
+        self.head = RPNHead(shapes[0].channels, num_anchors.pop())
+        low, high = cfg.iou_thresholds
+        self.matcher = Matcher([low, high], [0, IGNORE, 1], allow_low_quality_matches=True)
+        self.box2box = Box2BoxTransform(cfg.bbox_reg_weights)
+
+    def forward(
+        self, images: ImageList, features: Mapping[str, Tensor], targets: Optional[list[Instances]] = None
+    ) -> tuple[list[Instances], dict[str, Tensor]]:
+        """Proposals (fields ``proposal_boxes``, ``objectness_logits``) per image, and losses.
+
+        ``targets`` (fields ``gt_boxes``) are needed in training only.
+        """
+        maps = [features[name] for name in self.in_features]
+        anchors = self.anchor_generator([m.shape[-2:] for m in maps])
+        logits, deltas = self.head(maps)
+        losses = {}
+        if self.training:
+            if targets is None:
+                raise ValueError("RPN needs targets in training mode")
+            losses = self.losses(torch.cat(anchors), torch.cat(logits, 1), torch.cat(deltas, 1), targets)
+        proposals = self.select_proposals(anchors, logits, deltas, images.image_sizes)
+        return proposals, losses
+
+    @torch.no_grad()
+    def label_anchors(self, anchors: Tensor, targets: list[Instances]) -> tuple[Tensor, Tensor]:
+        """Sampled anchor labels (N, A) in {-1, 0, 1} and matched gt boxes (N, A, 4)."""
+        all_labels, all_boxes = [], []
+        for target in targets:
+            gt_boxes = target.gt_boxes
+            matches, labels = self.matcher(box_iou(gt_boxes, anchors))
+            positive, negative = subsample_labels(labels, self.cfg.batch_size_per_image, self.cfg.positive_fraction)
+            sampled = torch.full_like(labels, IGNORE)
+            sampled[positive] = 1
+            sampled[negative] = 0
+            all_labels.append(sampled)
+            all_boxes.append(gt_boxes[matches] if len(gt_boxes) else torch.zeros_like(anchors))
+        return torch.stack(all_labels), torch.stack(all_boxes)
+
+    def losses(self, anchors: Tensor, logits: Tensor, deltas: Tensor, targets: list[Instances]) -> dict[str, Tensor]:
+        labels, matched_boxes = self.label_anchors(anchors, targets)
+        positive = labels == 1
+        valid = labels != IGNORE
+        target_deltas = self.box2box.get_deltas(anchors.expand_as(matched_boxes)[positive], matched_boxes[positive])
+        normalizer = self.cfg.batch_size_per_image * len(targets)
+        loss_loc = F.smooth_l1_loss(deltas[positive], target_deltas, beta=self.cfg.smooth_l1_beta, reduction="sum")
+        loss_cls = F.binary_cross_entropy_with_logits(logits[valid], labels[valid].to(logits.dtype), reduction="sum")
+        weight = self.cfg.loss_weight / normalizer
+        return {"loss_rpn_cls": loss_cls * weight, "loss_rpn_loc": loss_loc * weight}
+
+    @torch.no_grad()
+    def select_proposals(
+        self, anchors: list[Tensor], logits: list[Tensor], deltas: list[Tensor], image_sizes: list[tuple[int, int]]
+    ) -> list[Instances]:
+        """Top-k per level, decode, clip, drop empty boxes, NMS per level, top-k per image."""
+        pre_topk = self.cfg.pre_nms_topk_train if self.training else self.cfg.pre_nms_topk_test
+        post_topk = self.cfg.post_nms_topk_train if self.training else self.cfg.post_nms_topk_test
+        boxes, scores, levels = [], [], []
+        for level, (level_anchors, level_logits, level_deltas) in enumerate(zip(anchors, logits, deltas)):
+            k = min(pre_topk, level_logits.shape[1])
+            top_logits, top_index = level_logits.topk(k, dim=1)
+            rows = torch.arange(level_logits.shape[0], device=top_index.device)[:, None]
+            decoded = self.box2box.apply_deltas(
+                level_deltas[rows, top_index].reshape(-1, 4), level_anchors[top_index].reshape(-1, 4)
+            )
+            boxes.append(decoded.view(-1, k, 4))
+            scores.append(top_logits)
+            levels.append(torch.full((k,), level, device=top_index.device, dtype=torch.long))
+        boxes, scores, levels = torch.cat(boxes, 1), torch.cat(scores, 1), torch.cat(levels)
+
+        proposals = []
+        for image_boxes, image_scores, image_size in zip(boxes, scores, image_sizes):
+            image_boxes = clip_boxes(image_boxes, image_size)
+            keep = nonempty_boxes(image_boxes, self.cfg.min_box_size) & torch.isfinite(image_scores)
+            keep &= torch.isfinite(image_boxes).all(dim=1)
+            image_boxes, image_scores, image_levels = image_boxes[keep], image_scores[keep], levels[keep]
+            kept = batched_nms(image_boxes, image_scores, image_levels, self.cfg.nms_thresh)[:post_topk]
+            proposals.append(
+                Instances(image_size, proposal_boxes=image_boxes[kept], objectness_logits=image_scores[kept])
+            )
+        return proposals

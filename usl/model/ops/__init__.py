@@ -1,0 +1,30 @@
+"""Detection operators in pure torch: RoIAlign, NMS, box maths and anchors."""
+from .anchors import AnchorGenerator, cell_anchors
+from .boxes import (
+    DEFAULT_SCALE_CLAMP,
+    Box2BoxTransform,
+    box_area,
+    box_iou,
+    clip_boxes,
+    nonempty_boxes,
+    pairwise_intersection,
+)
+from .nms import batched_nms, nms
+from .roi_align import RoIAlign, convert_boxes_to_rois, roi_align
+
+__all__ = [
+    "AnchorGenerator",
+    "Box2BoxTransform",
+    "DEFAULT_SCALE_CLAMP",
+    "RoIAlign",
+    "batched_nms",
+    "box_area",
+    "box_iou",
+    "cell_anchors",
+    "clip_boxes",
+    "convert_boxes_to_rois",
+    "nms",
+    "nonempty_boxes",
+    "pairwise_intersection",
+    "roi_align",
+]

@@ -1,0 +1,258 @@
+"""RoIAlign in pure torch, with torchvision's exact sampling semantics.
+
+Why it is built this way: bilinear interpolation with torchvision's boundary rules is
+*separable*: the value sampled at ``(y, x)`` is ``sum_ij wy_i(y) wx_j(x) f[i, j]`` where
+each axis weight is zero when that coordinate falls outside ``[-1, size]``, and a zero
+in either factor zeroes the sample exactly as torchvision's "empty" test does. Averaging
+over a bin's sampling grid keeps the product form, so each RoI reduces to
+
+    out[c] = Wy @ f[c, window] @ Wx^T
+
+with ``Wy`` (out_h, window_h) and ``Wx`` (out_w, window_w) small dense weight matrices
+and ``window`` the feature rows/columns the RoI touches. This costs ~RoI area per
+channel (not ``out_h * out_w * 4 * grid^2`` gathers) and handles the adaptive
+sampling grid (a different grid per RoI) without padding samples.
+
+RoIs are processed in chunks of similar window size so memory stays bounded; there is
+no Python loop over RoIs. The backward pass is written out (the transposed matmuls and
+one ``index_add_`` into a single gradient buffer): autograd through the gathers would
+allocate a full-size input gradient per chunk.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence, Union
+
+import numpy as np
+import torch
+from torch import nn
+
+Tensor = torch.Tensor
+BoxesArg = Union[Tensor, Sequence[Tensor]]
+
+# Upper bound on the gathered feature elements held at once (64 MiB in float32).
+DEFAULT_CHUNK_ELEMENTS = 1 << 24
+# RoIs whose window sides agree within this factor are pooled together (padded to the largest).
+_BUCKET_GROWTH = 1.5
+
+
+def convert_boxes_to_rois(boxes: BoxesArg, like: Tensor) -> Tensor:
+    """Turn ``list[Tensor[Ki, 4]]`` (one per image) into ``Tensor[K, 5]`` (batch_idx, x0, y0, x1, y1)."""
+    if isinstance(boxes, Tensor):
+        if boxes.dim() != 2 or boxes.shape[1] != 5:
+            raise ValueError(f"RoIs given as one tensor must be (K, 5), got {tuple(boxes.shape)}")
+        return boxes
+    per_image = []
+    for image_index, image_boxes in enumerate(boxes):
+        if image_boxes.dim() != 2 or image_boxes.shape[1] != 4:
+            raise ValueError(f"boxes[{image_index}] must be (Ki, 4), got {tuple(image_boxes.shape)}")
+        batch_column = image_boxes.new_full((image_boxes.shape[0], 1), image_index)
+        per_image.append(torch.cat([batch_column, image_boxes], dim=1))
+    if not per_image:
+        return like.new_zeros((0, 5))
+    return torch.cat(per_image, dim=0)
+
+
+def roi_align(
+    input: Tensor,
+    boxes: BoxesArg,
+    output_size: Union[int, tuple[int, int]],
+    spatial_scale: float = 1.0,
+    sampling_ratio: int = -1,
+    aligned: bool = False,
+    max_chunk_elements: int = DEFAULT_CHUNK_ELEMENTS,
+) -> Tensor:
+    """Pool each RoI of ``input`` (N, C, H, W) to ``(K, C, out_h, out_w)``.
+
+    Args:
+        boxes: ``Tensor[K, 5]`` rows ``(batch_idx, x0, y0, x1, y1)`` or ``list[Tensor[Ki, 4]]``,
+            in input-image coordinates; ``spatial_scale`` maps them onto ``input``.
+        sampling_ratio: samples per bin along each axis; ``<= 0`` means adaptive,
+            ``ceil(roi_size / output_size)`` per RoI.
+        aligned: shift boxes by -0.5 feature pixel so that pixel centres line up
+            (detectron2's ROIAlignV2); when False, RoIs are at least 1x1 (legacy).
+    Boxes receive no gradient (as in torchvision); ``input`` does. Integer or bool
+    inputs (e.g. instance masks) are pooled in float32 without a float copy of the input.
+    """
+    out_h, out_w = (output_size, output_size) if isinstance(output_size, int) else tuple(output_size)
+    num_images, channels, height, width = input.shape
+    compute_dtype = torch.promote_types(input.dtype, torch.float32)
+    out_dtype = input.dtype if input.is_floating_point() else compute_dtype
+    rois = convert_boxes_to_rois(boxes, input).detach().to(device=input.device, dtype=compute_dtype)
+    num_rois = rois.shape[0]
+    if num_rois == 0:
+        return input.new_zeros((0, channels, out_h, out_w), dtype=out_dtype)
+    batch_index = rois[:, 0].long()
+    if int(batch_index.min()) < 0 or int(batch_index.max()) >= num_images:
+        raise ValueError(f"RoI batch indices must lie in [0, {num_images}), got {batch_index.unique().tolist()}")
+
+    offset = 0.5 if aligned else 0.0
+    x0, y0, x1, y1 = (rois[:, i] * spatial_scale - offset for i in range(1, 5))
+    roi_w, roi_h = x1 - x0, y1 - y0
+    if not aligned:
+        roi_w, roi_h = roi_w.clamp(min=1.0), roi_h.clamp(min=1.0)
+    rows = _axis_samples(y0, roi_h, out_h, height, sampling_ratio)
+    cols = _axis_samples(x0, roi_w, out_w, width, sampling_ratio)
+
+    chunks = [
+        _Chunk.build(index.to(input.device), batch_index, rows, cols, height, width)
+        for index in _plan_chunks(rows.length, cols.length, channels, max_chunk_elements)
+    ]
+    return _RoIAlignFunction.apply(input, chunks, (num_rois, out_h, out_w), compute_dtype).to(out_dtype)
+
+
+class RoIAlign(nn.Module):
+    """Module form of :func:`roi_align` with fixed pooling parameters."""
+
+    def __init__(self, output_size, spatial_scale: float, sampling_ratio: int = -1, aligned: bool = True):
+        super().__init__()
+        self.output_size = output_size
+        self.spatial_scale = spatial_scale
+        self.sampling_ratio = sampling_ratio
+        self.aligned = aligned
+
+    def forward(self, input: Tensor, boxes: BoxesArg) -> Tensor:
+        return roi_align(input, boxes, self.output_size, self.spatial_scale, self.sampling_ratio, self.aligned)
+
+    def extra_repr(self) -> str:
+        return (
+            f"output_size={self.output_size}, spatial_scale={self.spatial_scale}, "
+            f"sampling_ratio={self.sampling_ratio}, aligned={self.aligned}"
+        )
+
+
+@dataclass
+class _AxisSamples:
+    """Bilinear taps of one axis for every RoI: ``index``/``weight`` are (K, bins, taps)."""
+
+    index: Tensor  # absolute feature row (or column) of each tap
+    weight: Tensor  # bilinear weight / grid count; zero for invalid or padding taps
+    start: Tensor  # (K,) first row of the window the RoI touches
+    length: Tensor  # (K,) number of rows of that window
+
+    def take(self, chunk: Tensor) -> "_AxisSamples":
+        return _AxisSamples(self.index[chunk], self.weight[chunk], self.start[chunk], self.length[chunk])
+
+
+def _axis_samples(start: Tensor, roi_size: Tensor, bins: int, size: int, sampling_ratio: int) -> _AxisSamples:
+    """Sampling positions along one axis and their two bilinear taps (torchvision's rules)."""
+    bin_size = roi_size / bins
+    if sampling_ratio > 0:
+        grid = torch.full_like(start, sampling_ratio, dtype=torch.long)
+    else:
+        grid = torch.ceil(roi_size / bins).long().clamp(min=0)
+    max_grid = max(int(grid.max()), 1)
+    grid_f = grid.clamp(min=1).to(start.dtype)[:, None, None]
+    bin_index = torch.arange(bins, device=start.device, dtype=start.dtype)[None, :, None]
+    sample_index = torch.arange(max_grid, device=start.device)
+    coord = (
+        start[:, None, None]
+        + bin_index * bin_size[:, None, None]
+        + (sample_index.to(start.dtype)[None, None, :] + 0.5) * bin_size[:, None, None] / grid_f
+    )
+    valid = (sample_index[None, None, :] < grid[:, None, None]) & (coord >= -1.0) & (coord <= size)
+    coord = coord.clamp(min=0.0)
+    low = coord.floor().long()  # coord >= 0, so floor equals C's int() truncation
+    at_edge = low >= size - 1
+    low = low.clamp(max=size - 1)
+    high = torch.where(at_edge, low, low + 1)
+    frac = torch.where(at_edge, torch.zeros_like(coord), coord - low.to(coord.dtype))
+    scale = valid.to(coord.dtype) / grid_f
+
+    big = torch.iinfo(torch.long).max
+    window_start = torch.where(valid, low, big).flatten(1).amin(dim=1)
+    window_end = torch.where(valid, high, -1).flatten(1).amax(dim=1)
+    has_taps = window_end >= 0
+    window_start = torch.where(has_taps, window_start, torch.zeros_like(window_start))
+    window_end = torch.where(has_taps, window_end, window_start)
+    # Padding/invalid taps point at the window start with zero weight, so they cost nothing.
+    low = torch.where(valid, low, window_start[:, None, None])
+    high = torch.where(valid, high, window_start[:, None, None])
+    return _AxisSamples(
+        index=torch.cat([low, high], dim=2),
+        weight=torch.cat([(1.0 - frac) * scale, frac * scale], dim=2),
+        start=window_start,
+        length=window_end - window_start + 1,
+    )
+
+
+def _plan_chunks(window_h: Tensor, window_w: Tensor, channels: int, max_elements: int) -> list[Tensor]:
+    """Group RoIs whose windows have similar height and width (geometric buckets), then
+    split each group into chunks whose padded gather fits ``max_elements``.
+
+    Bucketing each axis separately bounds the padding waste (tall and wide windows are
+    never padded to each other's size) with a few dozen chunks in practice.
+    """
+    heights, widths = window_h.cpu().numpy(), window_w.cpu().numpy()
+    step = np.log(_BUCKET_GROWTH)
+    buckets = np.ceil(np.log(heights) / step) * 4096 + np.ceil(np.log(widths) / step)
+    order = np.argsort(buckets, kind="stable")
+    _, starts = np.unique(buckets[order], return_index=True)
+    chunks = []
+    for group in np.split(order, starts[1:]):
+        padded_cost = channels * int(heights[group].max()) * int(widths[group].max())
+        size = max(1, max_elements // max(padded_cost, 1))
+        chunks += [torch.from_numpy(part) for part in np.split(group, range(size, len(group), size))]
+    return chunks
+
+
+def _axis_matrix(axis: _AxisSamples, window: int) -> Tensor:
+    """Dense (k, bins, window) interpolation matrix relative to each RoI's window start."""
+    local = axis.index - axis.start[:, None, None]
+    matrix = axis.weight.new_zeros(axis.index.shape[0], axis.index.shape[1], window)
+    return matrix.scatter_add_(2, local, axis.weight)
+
+
+@dataclass
+class _Chunk:
+    """RoIs pooled together: their window pixels and the two axis matrices."""
+
+    rois: Tensor  # (k,) positions in the output
+    batch: Tensor  # (k,) image of each RoI
+    pixel: Tensor  # (k, window_h, window_w) pixel index within the image (row * W + col)
+    row_matrix: Tensor  # (k, out_h, window_h)
+    col_matrix: Tensor  # (k, out_w, window_w)
+
+    @classmethod
+    def build(cls, rois: Tensor, batch: Tensor, rows: _AxisSamples, cols: _AxisSamples, height: int, width: int):
+        rows, cols = rows.take(rois), cols.take(rois)
+        window_h, window_w = int(rows.length.max()), int(cols.length.max())
+        device = rois.device
+        # Rows/columns past the image edge only occur where the matrices are zero; clamp them in.
+        row_ids = (rows.start[:, None] + torch.arange(window_h, device=device)).clamp(max=height - 1)
+        col_ids = (cols.start[:, None] + torch.arange(window_w, device=device)).clamp(max=width - 1)
+        pixel = row_ids[:, :, None] * width + col_ids[:, None, :]
+        return cls(rois, batch[rois], pixel, _axis_matrix(rows, window_h), _axis_matrix(cols, window_w))
+
+
+class _RoIAlignFunction(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, input: Tensor, chunks: list[_Chunk], out_shape: tuple[int, int, int], dtype: torch.dtype):
+        num_images, channels, height, width = input.shape
+        num_rois, out_h, out_w = out_shape
+        flat_input = input.flatten(2)  # (N, C, H*W): a view, gathered from below
+        pooled = torch.empty((num_rois, out_h, out_w, channels), dtype=dtype, device=input.device)
+        for chunk in chunks:
+            k, window_h, window_w = chunk.pixel.shape
+            window = flat_input[chunk.batch[:, None, None], :, chunk.pixel].to(dtype)  # (k, wh, ww, C)
+            # Two batched matmuls (rows, then columns): ~3x faster than the equivalent einsum on CPU.
+            row_pooled = torch.matmul(chunk.row_matrix, window.reshape(k, window_h, window_w * channels))
+            pooled[chunk.rois] = torch.matmul(chunk.col_matrix[:, None], row_pooled.view(k, out_h, window_w, channels))
+        ctx.chunks = chunks
+        ctx.input_shape = input.shape
+        ctx.input_dtype = input.dtype
+        return pooled.permute(0, 3, 1, 2).contiguous()
+
+    @staticmethod
+    def backward(ctx, grad_output: Tensor):
+        num_images, channels, height, width = ctx.input_shape
+        grad = grad_output.permute(0, 2, 3, 1)  # (K, out_h, out_w, C)
+        grad_input = grad.new_zeros((num_images * height * width, channels))  # channels-last rows
+        for chunk in ctx.chunks:
+            k = chunk.pixel.shape[0]
+            by_column = torch.matmul(chunk.col_matrix.transpose(1, 2)[:, None], grad[chunk.rois])  # (k, out_h, ww, C)
+            window = torch.matmul(chunk.row_matrix.transpose(1, 2), by_column.reshape(k, by_column.shape[1], -1))
+            target = chunk.batch[:, None, None] * (height * width) + chunk.pixel
+            grad_input.index_add_(0, target.reshape(-1), window.reshape(-1, channels))
+        grad_input = grad_input.view(num_images, height, width, channels).permute(0, 3, 1, 2)
+        return grad_input.to(ctx.input_dtype).contiguous(), None, None, None
