@@ -61,7 +61,9 @@ def parser() -> argparse.ArgumentParser:
                    help="field of view, degrees (70 keeps ~87%% of metric-size objects wholly in frame)")
     p.add_argument("--background", choices=BACKGROUNDS, default="floor",
                    help="floor: a randomly coloured ground plane under a random sky colour; plain: colour only")
-    p.add_argument("--image-codec", choices=("png", "jpeg"), default="png", help="png is lossless; jpeg (quality 95) is smaller")
+    p.add_argument("--image-codec", choices=("png", "jpeg"), default="jpeg",
+                   help="jpeg (quality 95) decodes ~2.4x faster than png at 512^2, which bounds training read "
+                        "throughput; png is lossless")
     p.add_argument("--scenes-per-shard", type=int, default=64, help="scenes per Parquet shard (~130 MB of PNGs at 512)")
     p.add_argument("--mesh-root", type=Path, default=None,
                    help="use your meshes instead of procedural ones: <root>/<category folder>/.../*.obj|glb|ply|off")

@@ -16,6 +16,7 @@ from .errors import UslError
 
 DEPTH_SCALE = 1000.0  # depth PNG stores millimetres
 MAX_DEPTH_MM = np.iinfo(np.uint16).max
+_IMREAD_RGB = getattr(cv2, "IMREAD_COLOR_RGB", None)
 
 
 def encode_image(rgb: np.ndarray, codec: str = "png", quality: int = 95) -> bytes:
@@ -36,10 +37,15 @@ def encode_image(rgb: np.ndarray, codec: str = "png", quality: int = 95) -> byte
 
 def decode_image(data: bytes) -> np.ndarray:
     """Decode PNG/JPEG bytes to an (H, W, 3) RGB uint8 array."""
-    bgr = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
-    if bgr is None:
+    buffer = np.frombuffer(data, np.uint8)
+    if _IMREAD_RGB is not None:  # OpenCV >= 4.10 decodes straight to RGB, saving a full-image pass
+        rgb = cv2.imdecode(buffer, _IMREAD_RGB)
+    else:
+        bgr = cv2.imdecode(buffer, cv2.IMREAD_COLOR)
+        rgb = None if bgr is None else cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+    if rgb is None:
         raise UslError("image bytes do not decode as PNG or JPEG")
-    return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+    return rgb
 
 
 def encode_depth(depth_m: np.ndarray) -> bytes:

@@ -1,0 +1,192 @@
+"""``usl-convert-scannet``: ScanNet scans + 2D instance masks, tracked into objects (paper Sec. 4.3).
+
+Scans are read from ``--scans-root/<scan>/`` as ``<scan>.sens`` or as exported frame folders; the
+scan lists come from the official ``scannetv2_<split>.txt`` files in ``--splits-dir``. Masks come
+from a detections file (COCO results, e.g. PointRend run with detectron2) or from ScanNet's own
+instance-filt/label-filt images. See pipelines/scannet/README.md for the file formats.
+"""
+from __future__ import annotations
+
+import argparse
+import shutil
+import sys
+import tempfile
+from pathlib import Path
+
+from data_specs import load_dataset_spec
+from pipelines.common import (
+    ShardPlan,
+    add_build_arguments,
+    build_options_from_args,
+    creator_from_args,
+    fingerprint_from_args,
+    run_build,
+)
+from usl.records import UslError
+
+from .convert import ConvertOptions, ScanUnit, build_scene
+from .detections_file import DetectionsFileSource, split_detections
+from .masks import MaskSource
+from .scannet_labels import ScanNetLabelsSource
+from .tracker import TrackerConfig
+
+COMMAND = "usl-convert-scannet"
+SPLITS = ("train", "val", "test")
+
+
+def parse_size(text: str) -> tuple[int, int] | None:
+    if text == "native":
+        return None
+    try:
+        width, height = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"size {text!r} is not WIDTHxHEIGHT or 'native'") from None
+    return width, height
+
+
+def parser(spec: dict) -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog=COMMAND, description=__doc__.split("\n\n")[0],
+                                formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    add_build_arguments(p)
+    p.add_argument("--scans-root", type=Path, required=True, help="folder with one <scan id>/ folder per scan")
+    p.add_argument("--splits-dir", type=Path, required=True, help="folder with scannetv2_{train,val,test}.txt")
+    p.add_argument("--splits", nargs="+", choices=SPLITS, default=["train", "val"])
+    p.add_argument("--scenes", nargs="+", default=None, help="convert only these scans (must be in --splits)")
+    p.add_argument("--scenes-per-shard", type=int, default=8)
+    masks = p.add_argument_group("mask source")
+    masks.add_argument("--masks", choices=("detections", "scannet-labels"), default="detections")
+    masks.add_argument("--detections", nargs="+", help="COCO results JSON file(s) from the segmenter")
+    masks.add_argument("--detection-images", type=Path, help="COCO images JSON mapping image_id to scan frames")
+    masks.add_argument("--category-ids", choices=("coco", "contiguous"), default="coco",
+                       help="coco: category_id is a COCO id (1..90); contiguous: detectron2's 0-based class index")
+    masks.add_argument("--label-map", type=Path, help="scannetv2-labels.combined.tsv (for --masks scannet-labels)")
+    masks.add_argument("--min-score", type=float, default=0.5, help="ignore detections less confident than this")
+    frames = p.add_argument_group("frames")
+    frames.add_argument("--stride", type=int, default=10, help="process every N-th frame of a scan")
+    frames.add_argument("--size", type=parse_size, default=(640, 480), metavar="WxH",
+                        help="output resolution, or 'native' to keep the colour frames (and their JPEG bytes)")
+    frames.add_argument("--jpeg-quality", type=int, default=95, help="for re-encoded (resized) images")
+    frames.add_argument("--no-depth", action="store_true", help="do not store depth images in the records")
+    track = p.add_argument_group("tracking")
+    track.add_argument("--tracker", choices=("iou", "source-ids"), default="iou",
+                       help="source-ids: use ScanNet's instance ids as tracks (only with --masks scannet-labels)")
+    track.add_argument("--iou-threshold", type=float, default=0.5)
+    track.add_argument("--max-missed", type=int, default=3, help="processed frames a track may go unmatched")
+    track.add_argument("--min-track-frames", type=int, default=int(spec["tracking"]["min_track_frames"]),
+                       help="observations (processed frames) a track needs to become an object")
+    track.add_argument("--match-across-categories", action="store_true",
+                       help="let a detection continue a track of another category (the track's category is then "
+                            "the score-weighted vote)")
+    track.add_argument("--warp", choices=("auto", "on", "off"), default="auto",
+                       help="warp the last mask of a track into the current frame with depth and pose "
+                            "(auto: when --stride > 1)")
+    track.add_argument("--depth-tolerance", type=float, default=0.2, help="metres, for the warp's visibility test")
+    return p
+
+
+def read_split(splits_dir: Path, split: str) -> list[str]:
+    path = splits_dir / f"scannetv2_{split}.txt"
+    try:
+        scenes = [line.strip() for line in path.read_text().splitlines() if line.strip()]
+    except OSError as exc:
+        raise UslError(f"{path}: cannot read the official split file ({exc.strerror})") from None
+    if not scenes:
+        raise UslError(f"{path}: lists no scans")
+    return scenes
+
+
+def scenes_by_split(args: argparse.Namespace) -> dict[str, list[str]]:
+    chosen = {split: read_split(args.splits_dir, split) for split in args.splits}
+    if args.scenes is not None:
+        wanted = set(args.scenes)
+        unknown = wanted - {s for scenes in chosen.values() for s in scenes}
+        if unknown:
+            raise UslError(f"--scenes {' '.join(sorted(unknown))} not in the {'/'.join(args.splits)} split files")
+        chosen = {split: [s for s in scenes if s in wanted] for split, scenes in chosen.items()}
+    missing = [s for scenes in chosen.values() for s in scenes if not (args.scans_root / s).is_dir()]
+    if missing:
+        raise UslError(f"{args.scans_root}: {len(missing)} scan folder(s) missing, e.g. {', '.join(missing[:5])}; "
+                       "restrict the build with --scenes or --splits")
+    return {split: scenes for split, scenes in chosen.items() if scenes}
+
+
+def convert_options(args: argparse.Namespace) -> ConvertOptions:
+    try:
+        tracker = TrackerConfig(args.iou_threshold, args.max_missed, args.min_track_frames,
+                                args.match_across_categories)
+        if not 1 <= args.jpeg_quality <= 100:
+            raise ValueError(f"--jpeg-quality must lie in 1..100, got {args.jpeg_quality}")
+        return ConvertOptions(args.stride, args.size, args.jpeg_quality, not args.no_depth, args.min_score,
+                              args.warp, args.depth_tolerance, tracker, args.tracker == "source-ids")
+    except ValueError as exc:
+        raise UslError(f"bad option: {exc}") from None
+
+
+def mask_source(args: argparse.Namespace, spec: dict, scenes: set[str], cache: Path) -> tuple[MaskSource, dict]:
+    """The mask source, and what of its inputs belongs in the build fingerprint."""
+    categories = spec["categories"]
+    if args.masks == "scannet-labels":
+        if args.label_map is None:
+            raise UslError("--masks scannet-labels needs --label-map scannetv2-labels.combined.tsv")
+        return ScanNetLabelsSource(str(args.label_map), tuple((int(c["id"]), c["name"]) for c in categories)), {}
+    if args.tracker == "source-ids":
+        raise UslError("--tracker source-ids needs --masks scannet-labels (detectors give no identities)")
+    if not args.detections or args.detection_images is None:
+        raise UslError("--masks detections needs --detections RESULTS.json and --detection-images IMAGES.json")
+    results = [Path(p) for p in args.detections]
+    files = [*results, args.detection_images]
+    for path in files:
+        if not path.is_file():
+            raise UslError(f"{path}: no such file")
+    split_detections(results, args.detection_images, scenes, cache)
+    source = DetectionsFileSource(str(cache), tuple((int(c["coco_id"]), int(c["id"])) for c in categories),
+                                  args.category_ids == "contiguous")
+    stamps = [[str(p), p.stat().st_size, p.stat().st_mtime_ns] for p in files]
+    return source, {"detection_files": stamps}
+
+
+def plan_shards(chosen: dict[str, list[str]], scans_root: Path, per_shard: int, masks: MaskSource,
+                options: ConvertOptions) -> list[ShardPlan]:
+    plans = []
+    for split, scenes in chosen.items():
+        for index, start in enumerate(range(0, len(scenes), per_shard)):
+            units = [ScanUnit(s, str(scans_root / s), masks, options) for s in scenes[start:start + per_shard]]
+            plans.append(ShardPlan(split, index, units))
+    return plans
+
+
+def single_threaded_worker() -> None:
+    """Workers parallelise over scans; threads inside one only contend (torch/OpenCV on small arrays)."""
+    import cv2
+    import torch
+
+    torch.set_num_threads(1)
+    cv2.setNumThreads(1)
+
+
+def main(argv: list[str] | None = None) -> int:
+    spec = load_dataset_spec("scannet")
+    args = parser(spec).parse_args(argv)
+    cache = Path(tempfile.mkdtemp(prefix="usl-scannet-detections-"))
+    try:
+        build = build_options_from_args(args)
+        if args.scenes_per_shard < 1:
+            raise UslError("--scenes-per-shard must be >= 1")
+        options = convert_options(args)
+        chosen = scenes_by_split(args)
+        masks, inputs = mask_source(args, spec, {s for scenes in chosen.values() for s in scenes}, cache)
+        plans = plan_shards(chosen, args.scans_root, args.scenes_per_shard, masks, options)
+        fingerprint = {**fingerprint_from_args(args), **inputs}
+        summary = run_build(build, spec, fingerprint, plans, build_scene, creator_from_args(COMMAND, args),
+                            worker_initializer=single_threaded_worker)
+    except UslError as exc:
+        print(f"{COMMAND}: error: {exc}", file=sys.stderr)
+        return 2
+    finally:
+        shutil.rmtree(cache, ignore_errors=True)
+    print(f"{COMMAND}: {summary.describe()}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
