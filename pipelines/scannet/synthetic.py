@@ -17,7 +17,10 @@ from typing import Iterable, Iterator
 
 import cv2
 import numpy as np
+
 from pycocotools import mask as mask_utils
+
+from usl.geometry.cameras import look_at
 
 ROOM = (np.array([-4.0, -4.0, 0.0]), np.array([4.0, 4.0, 3.0]))  # world frame: z up, metres
 
@@ -47,18 +50,6 @@ class SyntheticFrame:
     color: bytes  # encoded JPEG, exactly the bytes a file stores
     depth_mm: np.ndarray  # (Hd, Wd) uint16
     instances: np.ndarray  # (Hc, Wc) uint8 instance ids, 0 = none
-
-
-def look_at(eye: np.ndarray, target: np.ndarray) -> np.ndarray:
-    """4x4 camera-to-world with OpenCV axes (x right, y down, z forward), world z up."""
-    forward = (target - eye) / np.linalg.norm(target - eye)
-    right = np.cross(forward, [0.0, 0.0, 1.0])
-    right /= np.linalg.norm(right)
-    down = np.cross(forward, right)
-    pose = np.eye(4)
-    pose[:3, :3] = np.stack([right, down, forward], axis=1)
-    pose[:3, 3] = eye
-    return pose
 
 
 def scaled_half_pixel(K: np.ndarray, sx: float, sy: float) -> np.ndarray:
@@ -100,7 +91,7 @@ class SyntheticScan:
             s = 2 * phase if phase < 0.5 else 2 - 2 * phase
         x = self.x_range[0] + s * (self.x_range[1] - self.x_range[0])
         eye = np.array([x, -2.6, 1.25 + 0.1 * np.sin(6 * s)])
-        return look_at(eye, np.array([0.55 * x, 0.6, 0.5]))
+        return look_at(eye, np.array([0.55 * x, 0.6, 0.5]), up=(0.0, 0.0, 1.0))
 
     def _cast(self, pose: np.ndarray, K: np.ndarray,
               size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

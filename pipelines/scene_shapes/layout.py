@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from usl.geometry.cameras import intrinsics_from_fov
+from usl.geometry.cameras import intrinsics_from_fov, look_at
 
 from .shapes import ModelRef
 
@@ -79,18 +79,6 @@ class SceneLayout:
     objects: tuple[ObjectPlacement, ...]
     cam_to_world: tuple[np.ndarray, ...]  # per view, OpenCV camera -> world, 4x4
     K: np.ndarray  # 3x3, shared by all views
-
-
-def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray = np.array([0.0, 1.0, 0.0])) -> np.ndarray:
-    """OpenCV-axes camera->world pose of a camera at ``eye`` looking at ``target`` with ``up`` up."""
-    forward = target - eye
-    forward = forward / np.linalg.norm(forward)
-    right = np.cross(forward, up)
-    right = right / np.linalg.norm(right)
-    down = np.cross(forward, right)
-    pose = np.eye(4)
-    pose[:3, 0], pose[:3, 1], pose[:3, 2], pose[:3, 3] = right, down, forward, eye
-    return pose
 
 
 def orbit_poses(rig: RigConfig, placement: PlacementConfig, rng: np.random.Generator) -> list[np.ndarray]:

@@ -7,6 +7,7 @@ Works on torch tensors; numpy callers convert with ``torch.as_tensor``.
 """
 from __future__ import annotations
 
+import numpy as np
 import torch
 
 Tensor = torch.Tensor
@@ -93,3 +94,19 @@ def scale_intrinsics(K: Tensor, sx: float, sy: float) -> Tensor:
 def opencv_to_opengl_camera() -> Tensor:
     """diag(1, -1, -1, 1): flips OpenCV camera axes to OpenGL's (y up, looking down -z)."""
     return torch.diag(torch.tensor([1.0, -1.0, -1.0, 1.0], dtype=torch.float64))
+
+
+def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray | tuple[float, float, float] = (0.0, 1.0, 0.0)) -> np.ndarray:
+    """cam_to_world (4x4 float64 numpy) of an OpenCV camera at ``eye`` looking at ``target``.
+
+    ``up`` is the world's up direction (Y-up worlds: (0, 1, 0); Z-up, e.g. ScanNet: (0, 0, 1)); the
+    camera's y axis points away from it. Numpy because pipelines build poses before any tensor exists.
+    """
+    eye, target, up = (np.asarray(a, dtype=np.float64) for a in (eye, target, up))
+    forward = (target - eye) / np.linalg.norm(target - eye)
+    right = np.cross(forward, up)
+    right /= np.linalg.norm(right)
+    down = np.cross(forward, right)
+    pose = np.eye(4)
+    pose[:3, 0], pose[:3, 1], pose[:3, 2], pose[:3, 3] = right, down, forward, eye
+    return pose

@@ -1,0 +1,139 @@
+"""``usl-train`` end to end on tiny synthetic records: exact resume, DDP equivalence, NaN guard, errors."""
+import os
+import subprocess
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+import pytest
+import torch
+
+sys.path.insert(0, str(Path(__file__).parents[1] / "data"))
+
+from synthetic_records import build_synthetic_records  # noqa: E402
+
+from usl.engine.checkpoint import CheckpointError, load_model, read_checkpoint  # noqa: E402
+from usl.engine.distributed import DistInfo  # noqa: E402
+from usl.engine.run_log import read_metrics  # noqa: E402
+from usl.engine.train import Trainer, main, seed_everything  # noqa: E402
+from usl.config import load_config  # noqa: E402
+from usl.model.outputs import ObjectPredictions  # noqa: E402
+from usl.model.usl_model import USLModel  # noqa: E402
+
+REPO = Path(__file__).parents[2]
+FAST = ["train.cpu_threads=1", "data.max_size=0", "data.num_views=2", "loss.mesh_points=100", "loss.mask_points=100",
+        "loss.render.resolution=16", "model.shape.num_stages=1"]
+
+
+@pytest.fixture(scope="module")
+def records(tmp_path_factory):
+    return build_synthetic_records(tmp_path_factory.mktemp("train") / "records", num_scenes=4, num_views=4, size=48)
+
+
+def _args(records, out, *overrides):
+    return ["--config", "tiny", "--output-dir", str(out), f"data.root={records}", *FAST, *overrides]
+
+
+def _weights(path):
+    return read_checkpoint(path)["model"]
+
+
+def test_resume_reproduces_the_uninterrupted_run(records, tmp_path):
+    """Interrupted after its iteration-3 checkpoint (it ran on to 4), then resumed: same losses
+    and the same final weights as a run that never stopped, across an epoch boundary (4 per epoch)."""
+    common = ["train.batch_size=4", "train.log_every=1", "train.checkpoint_every=3", "train.keep_checkpoints=0"]
+    assert main(_args(records, tmp_path / "full", *common, "optim.max_iter=6")) == 0
+    assert main(_args(records, tmp_path / "cut", *common, "optim.max_iter=4")) == 0
+    assert main(["--resume", str(tmp_path / "cut" / "checkpoints" / "model_0000003.pt"), "optim.max_iter=6"]) == 0
+    full, resumed = read_metrics(tmp_path / "full"), read_metrics(tmp_path / "cut")
+    assert [r["iteration"] for r in resumed] == [1, 2, 3, 4, 5, 6] and [r["epoch"] for r in full][-1] == 1
+    for a, b in zip(full, resumed):
+        for key in ("loss", "l3d", "det/loss_cls", "det/loss_rpn_cls", "stat/l_dist", "grad_norm"):
+            assert a[key] == pytest.approx(b[key], rel=1e-6, abs=1e-9), (a["iteration"], key)
+    end_full = _weights(tmp_path / "full" / "checkpoints" / "model_0000006.pt")
+    end_resumed = _weights(tmp_path / "cut")  # the run folder resolves to its newest checkpoint
+    for name, value in end_full.items():
+        assert torch.allclose(value.float(), end_resumed[name].float(), atol=1e-6), name
+    model, config = load_model(tmp_path / "cut")
+    assert not model.training and config.optim.max_iter == 6 and config.model.categories == ("crate", "slab")
+    assert (tmp_path / "cut" / "config.yaml").is_file()
+
+
+def test_two_process_ddp_step_equals_one_process_on_the_combined_batch(records, tmp_path):
+    """One SGD step (lr 0.1, no momentum): weights after it hold the averaged gradient. Detection
+    losses are off (their proposal sampling draws per-process random numbers) and BatchNorm is
+    frozen (batch statistics differ by construction)."""
+    common = ["optim.name=sgd", "optim.lr=0.1", "optim.momentum=0", "optim.weight_decay=0", "optim.max_iter=1",
+              "optim.schedule=constant", "loss.weights.mu_2d=0", "model.detector.backbone.resnet.norm=FrozenBN",
+              "data.num_views=3", "model.shape.num_stages=2"]
+    assert main(_args(records, tmp_path / "one", *common, "train.batch_size=2")) == 0
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(REPO)}
+    command = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2", "-m", "usl.engine.train",
+               *_args(records, tmp_path / "two", *common, "train.batch_size=1")]
+    result = subprocess.run(command, env=env, cwd=REPO, capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr[-3000:]
+    one, two = _weights(tmp_path / "one"), _weights(tmp_path / "two")
+    for name, value in one.items():  # float32 summation order differs: compare at each tensor's scale
+        assert (value - two[name]).abs().max() <= 1e-5 * value.abs().max() + 1e-7, name
+    assert read_checkpoint(tmp_path / "two")["world_size"] == 2
+    # the step did move the heads and the backbone (the trainer seeds, then builds the model)
+    _, config = load_model(tmp_path / "one")
+    seed_everything(config.train.seed, 0)
+    initial = USLModel(config.model, config.loss).state_dict()
+    for prefix in ("layout_head.", "shape_head.", "detector.backbone.fpn."):
+        assert any(not torch.equal(v, initial[k]) for k, v in one.items() if k.startswith(prefix)), prefix
+
+
+def test_non_finite_loss_skips_the_step(records, tmp_path):
+    cfg = load_config("tiny", [f"data.root={records}", *FAST, "train.batch_size=2"])
+    trainer = Trainer(cfg, tmp_path / "nan", DistInfo(0, 1, 0, torch.device("cpu")))
+    batch = [trainer.loader.dataset[key] for key in next(iter(trainer.sampler))]
+    bad = [replace(batch[0], views=[replace(v, K=v.K * float("nan")) for v in batch[0].views])] + batch[1:]
+    before = {k: v.detach().clone() for k, v in trainer.model.named_parameters()}
+    values = trainer.step(bad)
+    assert values["skipped"] == 1.0 and trainer.step.skipped == 1
+    assert all(torch.equal(before[k], v) for k, v in trainer.model.named_parameters())
+    values = trainer.step(batch)
+    assert values["skipped"] == 0.0
+    assert any(not torch.equal(before[k], v) for k, v in trainer.model.named_parameters())
+    assert all(p.grad is None for p in trainer.step.params)  # nothing left over for the next step
+
+
+def test_model_api_for_the_evaluator(records, tmp_path):
+    assert main(_args(records, tmp_path / "api", "optim.max_iter=1", "train.batch_size=2")) == 0
+    model, config = load_model(tmp_path / "api" / "checkpoints" / "model_0000001.pt")
+    from usl.data import CategoryIndex, decode_frame
+    from usl.records import RecordsDataset
+
+    dataset = RecordsDataset(records, "val")
+    frame = decode_frame(dataset.read_scene(dataset.scene_ids[0], views=[0])[0], CategoryIndex(dataset.categories))
+    for mode in ("gt_boxes", "detections"):
+        (pred,) = model.predict([frame], mode=mode)
+        assert isinstance(pred, ObjectPredictions) and pred.verts.shape[1:] == (162, 3)
+
+
+def test_clear_errors(records, tmp_path, capsys):
+    def error_of(argv):
+        assert main(argv) == 2
+        return capsys.readouterr().err
+
+    assert "missing.yaml" in error_of(["--config", str(tmp_path / "missing.yaml")])
+    assert "unknown key(s) ['lrr']" in error_of(_args(records, tmp_path / "x", "optim.lrr=1"))
+    assert "data.root is not set" in error_of(["--config", "tiny", "--output-dir", str(tmp_path / "y")])
+    assert "nowhere" in error_of(["--config", "tiny", "--output-dir", str(tmp_path / "y"), "data.root=/nowhere"])
+    assert "too few" in error_of(_args(records, tmp_path / "z", "train.batch_size=64"))
+    assert "does not exist" in error_of(["--resume", str(tmp_path / "nothing.pt")])
+    assert "--resume needs" in error_of(["--resume"])
+    assert main(_args(records, tmp_path / "done", "optim.max_iter=1", "train.batch_size=2")) == 0
+    assert "already holds checkpoints" in error_of(_args(records, tmp_path / "done", "optim.max_iter=1"))
+
+    with pytest.raises(CheckpointError, match="no checkpoint in this folder"):
+        load_model(tmp_path)
+    garbage = tmp_path / "garbage.pt"
+    garbage.write_bytes(b"not a checkpoint")
+    with pytest.raises(CheckpointError, match="garbage.pt could not be read"):
+        load_model(garbage)
+    foreign = tmp_path / "foreign.pt"
+    torch.save({"weights": torch.zeros(1)}, foreign)
+    with pytest.raises(CheckpointError, match="not a usl checkpoint"):
+        load_model(foreign)

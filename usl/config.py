@@ -1,0 +1,367 @@
+"""Training/model configuration: nested dataclasses, loaded from YAML recipes with ``key=value`` overrides.
+
+A recipe (``usl/configs/<name>.yaml`` or any path) holds only what differs from the dataclass
+defaults; ``_base_: other.yaml`` inherits another recipe first. Overrides use dotted keys
+(``optim.lr=0.01``, ``model.shape.num_stages=1``) and YAML values (``data.root=/data/hs``,
+``optim.steps=[60000,75000]``). Unknown keys and ill-typed values are errors that name the key
+and the file, so a typo never silently trains with a default. The resolved config (every field)
+is saved in the run folder and in each checkpoint.
+"""
+from __future__ import annotations
+
+import copy
+import dataclasses
+import types
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+import yaml
+
+from usl.losses import LossWeights
+from usl.model.detector import DetectorConfig
+from usl.render import SoftRasterSettings
+
+CONFIG_DIR = Path(__file__).resolve().parent / "configs"
+BASE_KEY = "_base_"
+
+
+class ConfigError(ValueError):
+    """A config file, key or value is wrong; the message names which."""
+
+
+@dataclass
+class DataConfig:
+    root: str = ""  # records folder (DESIGN.md §3)
+    train_split: str = "train"
+    val_split: str = "val"
+    num_views: int = 5  # M: the input view plus M - 1 other views
+    view_sampling: str = "uniform"  # "uniform" | "time_distance" (p ∝ |view_id difference|, video data)
+    input_view_stride: int = 1  # every k-th view of a scene is an input view (video data is redundant)
+    max_size: int = 0  # resize so the longer image side is at most this; 0 keeps the stored size
+    max_objects: int = 0  # objects of the input view in L_3D (a random subset); 0 keeps all
+    num_workers: int = 2
+
+    def __post_init__(self) -> None:
+        _check_choice("data.view_sampling", self.view_sampling, ("uniform", "time_distance"))
+        _check_positive("data.num_views", self.num_views)
+        _check_positive("data.input_view_stride", self.input_view_stride)
+
+
+@dataclass
+class LayoutRange:
+    """``z = z0 + z~ (z1 - z0)``, ``rho = rho0 + rho~ (rho1 - rho0)`` (metres, data_specs ``layout``)."""
+
+    z0: float = 0.0
+    z1: float = 0.0
+    rho0: float = 0.0
+    rho1: float = 0.0
+
+
+@dataclass
+class LayoutHeadConfig:
+    in_features: tuple[str, ...] = ("p2",)  # paper Appendix tables: RoIAlign on FPN p2
+    pooler_resolution: int = 7  # RoIAlign bins, then averaged to one 1 x C vector
+    num_fc: int = 4
+    fc_dim: int = 256
+
+
+@dataclass
+class ShapeHeadConfig:
+    ico_level: int = 3
+    num_stages: int = 3
+    num_graph_convs: int = 3
+    hidden_dim: int = 256
+    feature: str = "p2"  # backbone map the vertex features come from
+    sampler: str = "roimap"  # "roimap" (paper) | "vertalign" (Mesh R-CNN, the ablation)
+    vertalign_resolution: int = 14  # RoIAlign size of the VertAlign ablation
+
+    def __post_init__(self) -> None:
+        _check_choice("model.shape.sampler", self.sampler, ("roimap", "vertalign"))
+        _check_positive("model.shape.num_stages", self.num_stages)
+
+
+DETECTOR_PRESETS = {"default": DetectorConfig, "tiny": DetectorConfig.tiny}
+
+
+@dataclass
+class ModelConfig:
+    # Defaults the ``detector`` section starts from: "default" (Mask R-CNN R50-FPN) or "tiny"
+    # (``DetectorConfig.tiny()``, for CPU runs); the recipe's ``detector`` keys apply on top.
+    detector_preset: str = "default"
+    detector: DetectorConfig = field(default_factory=DetectorConfig)
+    layout: LayoutHeadConfig = field(default_factory=LayoutHeadConfig)
+    shape: ShapeHeadConfig = field(default_factory=ShapeHeadConfig)
+    # Filled from the records manifest when empty (categories in data_specs order, layout ranges).
+    categories: tuple[str, ...] = ()
+    layout_range: LayoutRange = field(default_factory=LayoutRange)
+
+
+_SOFT = SoftRasterSettings()
+
+
+@dataclass
+class RenderConfig:
+    """Dynamic soft rendering for l_xent; defaults are ``usl.render.SoftRasterSettings``'s."""
+
+    resolution: int = 72  # side of every dynamic-rendering window (paper: 128 Scene-Shapes, 72 others)
+    sigma: float = _SOFT.sigma
+    blur_radius: float = _SOFT.blur_radius
+    faces_per_pixel: int = 10 if _SOFT.faces_per_pixel is None else _SOFT.faces_per_pixel
+    padding: float = 0.05  # window margin, as a fraction of its longer side
+
+    def settings(self) -> SoftRasterSettings:
+        return SoftRasterSettings(sigma=self.sigma, blur_radius=self.blur_radius, faces_per_pixel=self.faces_per_pixel)
+
+
+@dataclass
+class LossConfig:
+    weights: LossWeights = field(default_factory=LossWeights)
+    render: RenderConfig = field(default_factory=RenderConfig)
+    # l_dist is a squared distance in units of the image's longer side; this factor sets its unit
+    # against l_xent (a per-pixel mean) and the regularizers (the paper leaves the unit open).
+    # 1024 = (1/32 of the longer side)^-2: an error of 1/32 of the image costs 1, so the layout
+    # signal is not drowned by l_xent and the regularizers at any image resolution.
+    dist_scale: float = 1024.0
+    mesh_points: int = 1000  # points sampled on each mesh surface for l_dist
+    mask_points: int = 1000  # points sampled in each true silhouette for l_dist
+    iou_threshold: float = 0.5  # l_xent applies only above this IoU (paper Eq. 4)
+
+
+@dataclass
+class OptimConfig:
+    name: str = "sgd"  # "sgd" | "adam"
+    lr: float = 0.01
+    momentum: float = 0.9
+    weight_decay: float = 1e-4
+    schedule: str = "step"  # "step" (x gamma at each of steps) | "constant"
+    steps: tuple[int, ...] = ()
+    gamma: float = 0.1
+    warmup_iters: int = 0
+    warmup_factor: float = 0.001
+    max_iter: int = 1000
+    clip_grad_norm: float = 0.0  # 0 disables clipping (the norm is still checked for NaN/inf)
+
+    def __post_init__(self) -> None:
+        _check_choice("optim.name", self.name, ("sgd", "adam"))
+        _check_choice("optim.schedule", self.schedule, ("step", "constant"))
+        _check_positive("optim.max_iter", self.max_iter)
+
+
+@dataclass
+class TrainConfig:
+    batch_size: int = 2  # input images per process (GPU)
+    seed: int = 0
+    device: str = "auto"  # "auto" | "cpu" | "cuda"
+    amp: str = "bfloat16"  # autocast dtype on CUDA: "bfloat16" | "float16" | "none"; ignored on CPU
+    log_every: int = 20
+    checkpoint_every: int = 1000
+    keep_checkpoints: int = 3  # newest checkpoints kept in the run folder (0 keeps all)
+    cpu_threads: int = 0  # torch intra-op threads per process; 0 leaves torch's default
+
+    def __post_init__(self) -> None:
+        _check_choice("train.amp", self.amp, ("bfloat16", "float16", "none"))
+        _check_choice("train.device", self.device, ("auto", "cpu", "cuda"))
+        _check_positive("train.batch_size", self.batch_size)
+
+
+@dataclass
+class Config:
+    name: str = "usl"
+    data: DataConfig = field(default_factory=DataConfig)
+    model: ModelConfig = field(default_factory=ModelConfig)
+    loss: LossConfig = field(default_factory=LossConfig)
+    optim: OptimConfig = field(default_factory=OptimConfig)
+    train: TrainConfig = field(default_factory=TrainConfig)
+
+
+def _check_choice(key: str, value: str, choices: Sequence[str]) -> None:
+    if value not in choices:
+        raise ConfigError(f"{key}: {value!r} is not one of {list(choices)}")
+
+
+def _check_positive(key: str, value: int) -> None:
+    if value < 1:
+        raise ConfigError(f"{key}: must be >= 1, got {value}")
+
+
+# --------------------------------------------------------------------------------------------
+# dict <-> dataclass
+# --------------------------------------------------------------------------------------------
+def to_dict(obj: Any) -> Any:
+    """Dataclasses to plain dicts, tuples to lists: what ``yaml.safe_dump`` and JSON accept."""
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        return {f.name: to_dict(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
+    if isinstance(obj, (list, tuple)):
+        return [to_dict(v) for v in obj]
+    if isinstance(obj, dict):
+        return {k: to_dict(v) for k, v in obj.items()}
+    return obj
+
+
+def from_dict(cls: type, data: Any, where: str = "config") -> Any:
+    """Build dataclass ``cls`` from a (nested) mapping, checking keys and value types."""
+    if not isinstance(data, Mapping):
+        raise ConfigError(f"{where}: expected a mapping for {cls.__name__}, got {type(data).__name__} {data!r}")
+    hints = typing.get_type_hints(cls)
+    names = [f.name for f in dataclasses.fields(cls) if f.init]
+    unknown = sorted(set(data) - set(names))
+    if unknown:
+        raise ConfigError(f"{where}: unknown key(s) {unknown}; known: {names}")
+    values = {name: _convert(hints[name], data[name], f"{where}.{name}") for name in names if name in data}
+    try:
+        return cls(**values)
+    except ConfigError as exc:
+        raise ConfigError(f"{where}: {exc}") from None
+    except (TypeError, ValueError) as exc:
+        raise ConfigError(f"{where}: {exc}") from exc
+
+
+def _convert(tp: Any, value: Any, where: str) -> Any:
+    origin, args = typing.get_origin(tp), typing.get_args(tp)
+    if dataclasses.is_dataclass(tp):
+        return from_dict(tp, value, where)
+    if origin in (typing.Union, types.UnionType):
+        if value is None and type(None) in args:
+            return None
+        options = [a for a in args if a is not type(None)]
+        errors = []
+        for option in options:
+            try:
+                return _convert(option, value, where)
+            except ConfigError as exc:
+                errors.append(str(exc))
+        raise ConfigError("; ".join(errors))
+    if origin is tuple:
+        if not isinstance(value, (list, tuple)):
+            raise ConfigError(f"{where}: expected a list, got {value!r}")
+        if len(args) == 2 and args[1] is Ellipsis:
+            return tuple(_convert(args[0], v, f"{where}[{i}]") for i, v in enumerate(value))
+        if len(args) != len(value):
+            raise ConfigError(f"{where}: expected {len(args)} values, got {len(value)}")
+        return tuple(_convert(a, v, f"{where}[{i}]") for i, (a, v) in enumerate(zip(args, value)))
+    if origin is list:
+        if not isinstance(value, (list, tuple)):
+            raise ConfigError(f"{where}: expected a list, got {value!r}")
+        return [_convert(args[0], v, f"{where}[{i}]") for i, v in enumerate(value)]
+    return _convert_scalar(tp, value, where)
+
+
+def _convert_scalar(tp: Any, value: Any, where: str) -> Any:
+    if tp is bool:
+        if isinstance(value, bool):
+            return value
+    elif tp is int:
+        if isinstance(value, int) and not isinstance(value, bool):
+            return value
+        if isinstance(value, float) and value.is_integer():
+            return int(value)
+    elif tp is float:
+        if isinstance(value, (int, float)) and not isinstance(value, bool):
+            return float(value)
+        if isinstance(value, str):  # PyYAML reads "1e-3" (no dot) as a string
+            try:
+                return float(value)
+            except ValueError:
+                pass
+    elif tp is str:
+        if isinstance(value, str):
+            return value
+    elif tp is Any:
+        return value
+    else:
+        raise ConfigError(f"{where}: unsupported config type {tp!r}")
+    raise ConfigError(f"{where}: expected {tp.__name__}, got {type(value).__name__} {value!r}")
+
+
+# --------------------------------------------------------------------------------------------
+# YAML files and overrides
+# --------------------------------------------------------------------------------------------
+def resolve_config_path(name_or_path: str | Path) -> Path:
+    """A recipe name (``tiny``, ``hypersim``) from ``usl/configs`` or a path to a YAML file."""
+    path = Path(name_or_path)
+    if path.suffix not in (".yaml", ".yml"):
+        path = CONFIG_DIR / f"{name_or_path}.yaml"
+    if not path.is_file():
+        known = sorted(p.stem for p in CONFIG_DIR.glob("*.yaml"))
+        raise ConfigError(f"config {name_or_path!r}: no such file {path} (built-in recipes: {known})")
+    return path
+
+
+def read_yaml_config(path: Path, _seen: tuple[Path, ...] = ()) -> dict[str, Any]:
+    """A recipe as a nested dict, with its ``_base_`` chain merged underneath."""
+    path = path.resolve()
+    if path in _seen:
+        raise ConfigError(f"{path}: {BASE_KEY} chain loops back to itself")
+    try:
+        data = yaml.safe_load(path.read_text()) or {}
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"{path}: not valid YAML ({exc})") from exc
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: a config file must hold a mapping, got {type(data).__name__}")
+    base = data.pop(BASE_KEY, None)
+    if base is None:
+        return data
+    base_path = Path(base) if Path(base).is_absolute() else path.parent / base
+    if not base_path.is_file():
+        raise ConfigError(f"{path}: {BASE_KEY} {base!r} does not exist ({base_path})")
+    return deep_merge(read_yaml_config(base_path, _seen + (path,)), data)
+
+
+def deep_merge(base: Mapping[str, Any], update: Mapping[str, Any]) -> dict[str, Any]:
+    merged = copy.deepcopy(dict(base))
+    for key, value in update.items():
+        if isinstance(value, Mapping) and isinstance(merged.get(key), Mapping):
+            merged[key] = deep_merge(merged[key], value)
+        else:
+            merged[key] = copy.deepcopy(value)
+    return merged
+
+
+def parse_overrides(overrides: Sequence[str]) -> dict[str, Any]:
+    """``["optim.lr=0.01", "data.root=/x"]`` -> nested dict; values are parsed as YAML."""
+    nested: dict[str, Any] = {}
+    for item in overrides:
+        key, sep, raw = item.partition("=")
+        if not sep or not key.strip():
+            raise ConfigError(f"override {item!r}: expected key=value (e.g. optim.lr=0.01)")
+        try:
+            value = yaml.safe_load(raw) if raw.strip() else ""
+        except yaml.YAMLError as exc:
+            raise ConfigError(f"override {item!r}: value is not valid YAML ({exc})") from exc
+        node = nested
+        parts = key.strip().split(".")
+        for part in parts[:-1]:
+            node = node.setdefault(part, {})
+            if not isinstance(node, dict):
+                raise ConfigError(f"override {item!r}: {part!r} is set both as a value and as a section")
+        node[parts[-1]] = value
+    return nested
+
+
+def load_config(name_or_path: str | Path, overrides: Sequence[str] = ()) -> Config:
+    """Defaults <- recipe (with its ``_base_`` chain) <- overrides, checked and typed."""
+    path = resolve_config_path(name_or_path)
+    data = deep_merge(read_yaml_config(path), parse_overrides(overrides))
+    return config_from_dict(data, where=str(path))
+
+
+def config_from_dict(data: Mapping[str, Any], where: str = "config") -> Config:
+    """A full ``Config`` from a (possibly partial) nested dict over the defaults."""
+    defaults = to_dict(Config())
+    model = data.get("model") if isinstance(data.get("model"), Mapping) else {}
+    preset = model.get("detector_preset", "default")
+    if preset not in DETECTOR_PRESETS:
+        raise ConfigError(f"{where}: model.detector_preset: {preset!r} is not one of {sorted(DETECTOR_PRESETS)}")
+    defaults["model"]["detector"] = to_dict(DETECTOR_PRESETS[preset]())
+    merged = deep_merge(defaults, data)
+    try:
+        return from_dict(Config, merged, "config")
+    except ConfigError as exc:
+        raise ConfigError(f"{where}: {exc}") from None
+
+
+def save_config(config: Config, path: str | Path) -> None:
+    """Write the resolved config (every field) as YAML."""
+    Path(path).write_text(yaml.safe_dump(to_dict(config), sort_keys=False))

@@ -1,0 +1,61 @@
+"""What one training sample is: the input view (model input + detection targets) and the 2D
+ground truth of its objects in M views (the multi-view loss's targets)."""
+from __future__ import annotations
+
+from dataclasses import dataclass, fields, replace
+
+import torch
+
+from .frames import FrameData
+
+Tensor = torch.Tensor
+
+
+@dataclass
+class TargetView:
+    """View j's ground truth for the N objects of a sample's input view.
+
+    ``masks[o]`` is object o's true silhouette in this view (all False when the object is not
+    annotated there: out of frame, fully occluded, or not tracked); ``present[o]`` says which.
+    """
+
+    view_id: int
+    K: Tensor  # (3, 3) float32, for this view's (possibly resized) pixel frame
+    cam_to_world: Tensor  # (4, 4) float64
+    masks: Tensor  # (N, H, W) bool
+    present: Tensor  # (N,) bool
+
+    @property
+    def size(self) -> tuple[int, int]:
+        return int(self.masks.shape[-2]), int(self.masks.shape[-1])
+
+    def to(self, device: torch.device | str) -> "TargetView":
+        return replace(self, **{f.name: getattr(self, f.name).to(device) for f in fields(self) if f.name != "view_id"})
+
+
+@dataclass
+class MultiViewSample:
+    """The input view, which of its instances the 3D loss uses, and their masks in M views.
+
+    ``views[0]`` is the input view itself (j = 1 in the paper's sum). ``seed`` keys every random
+    draw of this sample's loss (points on meshes and silhouettes), so the loss of a sample does
+    not depend on the batch it lands in, the process, or the number of GPUs.
+    """
+
+    frame: FrameData
+    object_rows: Tensor  # (N,) long: rows of ``frame``'s instances that are the loss's objects
+    views: list[TargetView]
+    seed: int
+
+    def to(self, device: torch.device | str) -> "MultiViewSample":
+        frame = replace(
+            self.frame,
+            **{f.name: getattr(self.frame, f.name).to(device) for f in fields(self.frame)
+               if isinstance(getattr(self.frame, f.name), Tensor)},
+        )
+        return MultiViewSample(frame, self.object_rows.to(device), [v.to(device) for v in self.views], self.seed)
+
+
+def collate_samples(samples: list[MultiViewSample]) -> list[MultiViewSample]:
+    """Batches stay lists: images differ in size and objects in number; the model pads images."""
+    return list(samples)

@@ -1,0 +1,80 @@
+"""One guarded optimisation step: the model (DDP-wrapped when distributed), optimizer, LR schedule,
+autocast on CUDA, gradient clipping, and a NaN/inf guard that skips the step on every rank."""
+from __future__ import annotations
+
+import math
+import warnings
+from typing import Any
+
+import torch
+from torch.nn.parallel import DistributedDataParallel
+
+from usl.config import Config
+from usl.data import MultiViewSample
+from usl.model.usl_model import USLModel
+
+from .distributed import DistInfo, all_reduce_min
+from .optim import build_optimizer, build_scheduler
+
+AMP_DTYPES = {"bfloat16": torch.bfloat16, "float16": torch.float16}
+
+
+class TrainStep:
+    def __init__(self, cfg: Config, info: DistInfo):
+        self.cfg, self.info = cfg, info
+        self.model = USLModel(cfg.model, cfg.loss).to(info.device)
+        self.net: torch.nn.Module = self.model
+        if info.distributed:
+            self.net = DistributedDataParallel(
+                self.model,
+                device_ids=[info.device] if info.device.type == "cuda" else None,
+                find_unused_parameters=not cfg.loss.weights.mu_2d,  # without L_2D, FPN levels go unused
+            )
+        self.params = [p for p in self.model.parameters() if p.requires_grad]
+        self.optimizer = build_optimizer(self.params, cfg.optim)
+        self.scheduler = build_scheduler(self.optimizer, cfg.optim)
+        self.amp_dtype = AMP_DTYPES.get(cfg.train.amp) if info.device.type == "cuda" else None
+        self.scaler = torch.amp.GradScaler("cuda", enabled=self.amp_dtype is torch.float16)
+        self.skipped = 0
+
+    def state_dict(self) -> dict[str, Any]:
+        return {
+            "model": self.model.state_dict(),
+            "optimizer": self.optimizer.state_dict(),
+            "scheduler": self.scheduler.state_dict(),
+            "scaler": self.scaler.state_dict(),
+            "skipped_steps": self.skipped,
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.model.load_state_dict(state["model"])
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.scheduler.load_state_dict(state["scheduler"])
+        self.scaler.load_state_dict(state["scaler"])
+        self.skipped = int(state.get("skipped_steps", 0))
+
+    def __call__(self, batch: list[MultiViewSample]) -> dict[str, float]:
+        """Forward, backward, clip, guard, step; returns the losses and ``grad_norm``, ``skipped``."""
+        device = self.info.device
+        batch = [sample.to(device) for sample in batch]
+        with torch.autocast(device.type, dtype=self.amp_dtype or torch.bfloat16, enabled=self.amp_dtype is not None):
+            losses = self.net(batch)
+        loss = losses["loss"]
+        self.scaler.scale(loss).backward()
+        self.scaler.unscale_(self.optimizer)
+        clip = self.cfg.optim.clip_grad_norm
+        grad_norm = torch.nn.utils.clip_grad_norm_(self.params, clip if clip > 0 else math.inf)
+        finite = torch.isfinite(loss.detach()) & torch.isfinite(grad_norm)
+        ok = bool(all_reduce_min(finite.float().reshape(1)).item() > 0)  # every rank skips together
+        if ok:
+            self.scaler.step(self.optimizer)
+        else:
+            self.skipped += 1
+        self.scaler.update()
+        self.optimizer.zero_grad(set_to_none=True)
+        with warnings.catch_warnings():  # a skipped step is deliberate; the schedule counts iterations
+            warnings.filterwarnings("ignore", message="Detected call of `lr_scheduler.step", category=UserWarning)
+            self.scheduler.step()
+        values = {k: float(v.detach()) for k, v in losses.items()}
+        values.update(grad_norm=float(grad_norm), skipped=float(not ok))
+        return values

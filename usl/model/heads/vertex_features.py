@@ -1,0 +1,65 @@
+"""Vertex-aligned features for the shape head: RoIMap (the paper) and RoIAlign + VertAlign (Mesh R-CNN).
+
+Both take mesh vertices in the normalized cube. The frustum homography maps a cube point
+(x, y, w) to a camera point whose image projection is ``box_centre + box_half_size * (x, y)``
+for ANY z, rho and K (``usl.geometry.frustum``: x and y run linearly across the 2D box), so the
+projection of the current mesh onto the input image needs only the boxes.
+"""
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+
+from usl.model.detector import MultiScaleRoIAlign
+
+Tensor = torch.Tensor
+
+
+def project_cube_to_image(verts_cube: Tensor, boxes: Tensor) -> Tensor:
+    """(N, V, 3) cube vertices and (N, 4) xyxy boxes -> (N, V, 2) input-image pixels (u, v)."""
+    centre = 0.5 * (boxes[:, None, :2] + boxes[:, None, 2:])
+    half = 0.5 * (boxes[:, None, 2:] - boxes[:, None, :2])
+    return centre + half * verts_cube[..., :2]
+
+
+def roimap_features(
+    feature_map: Tensor, stride: int, verts_cube: Tensor, boxes: Tensor, image_index: Tensor
+) -> Tensor:
+    """RoIMap: bilinear samples straight from the backbone map at each vertex's projection.
+
+    Args:
+        feature_map: (B, C, Hf, Wf) map of the padded image batch with the given ``stride``.
+        verts_cube: (N, V, 3); boxes: (N, 4) in input pixels; image_index: (N,) image of each object.
+    Returns:
+        (N, V, C). Vertices projecting outside the image get zeros (``padding_mode="zeros"``).
+    The map spans [0, Wf * stride] x [0, Hf * stride] pixels with cell centres at (i + 0.5) * stride,
+    which is ``grid_sample(align_corners=False)``'s convention for normalised coordinates.
+    """
+    num_objects, num_verts = verts_cube.shape[:2]
+    channels, height, width = feature_map.shape[1:]
+    out = feature_map.new_zeros(num_objects, num_verts, channels, dtype=torch.float32)
+    uv = project_cube_to_image(verts_cube.float(), boxes.float())
+    extent = torch.tensor([width * stride, height * stride], dtype=uv.dtype, device=uv.device)
+    grid = 2.0 * uv / extent - 1.0  # float32 even under autocast: bf16 would misplace samples by cells
+    for image in torch.unique(image_index).tolist():
+        rows = torch.nonzero(image_index == image).squeeze(1)
+        points = grid[rows].reshape(1, 1, -1, 2)  # all vertices of this image's objects at once
+        sampled = F.grid_sample(feature_map[image : image + 1].float(), points, align_corners=False)
+        out[rows] = sampled.reshape(channels, len(rows), num_verts).permute(1, 2, 0)
+    return out
+
+
+def vertalign_features(roi_features: Tensor, verts_cube: Tensor) -> Tensor:
+    """VertAlign on RoIAlign features (N, C, R, R): samples at cube (x, y), zeros outside the RoI.
+
+    With aligned RoIAlign, bin i of R spans [i, i + 1] * box_size / R, so cube x in [-1, 1] is the
+    RoI grid in ``align_corners=False`` coordinates.
+    """
+    grid = verts_cube[:, None, :, :2].float()  # (N, 1, V, 2)
+    sampled = F.grid_sample(roi_features.float(), grid, align_corners=False)  # (N, C, 1, V)
+    return sampled[:, :, 0].transpose(1, 2)
+
+
+def single_level_pooler(feature: str, stride: int, resolution: int) -> MultiScaleRoIAlign:
+    """RoIAlign from one named backbone map (the detector's pooler class, one level)."""
+    return MultiScaleRoIAlign([feature], [stride], resolution, sampling_ratio=0)

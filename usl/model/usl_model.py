@@ -1,0 +1,194 @@
+"""The full USL model: Mask R-CNN + layout head + shape head + frustum casting (paper Sec. 3).
+
+``model(samples)`` (training) returns the named, weighted losses and their sum under ``"loss"``:
+``L = mu_2d L_2D + mu_3D L_3D + mu_reg L_reg``. The 3D heads are trained on the ground-truth
+boxes of the input view's objects (the frustum of each object is its true 2D box).
+
+``model.predict(frames, mode)`` returns one ``ObjectPredictions`` per input image:
+``mode="gt_boxes"`` uses the true boxes and labels (how the paper measures shape and layout),
+``mode="detections"`` the detector's own boxes, labels and scores.
+"""
+from __future__ import annotations
+
+from contextlib import nullcontext
+from dataclasses import dataclass
+from typing import Sequence
+
+import torch
+from torch import nn
+
+from usl.config import LossConfig, ModelConfig
+from usl.data.frames import FrameData
+from usl.data.samples import MultiViewSample
+from usl.geometry import cube_to_frustum
+from usl.losses import combine_losses
+from usl.model.backbone import IMAGENET_MEAN, IMAGENET_STD
+from usl.model.detector import ImageList, MaskRCNN, MultiScaleRoIAlign
+from usl.model.heads import LayoutHead, LayoutPrediction, ShapeHead, ShapePrediction
+from usl.model.multiview_loss import multiview_silhouette_loss, shape_regularizers
+from usl.model.outputs import ObjectPredictions
+
+Tensor = torch.Tensor
+MODES = ("gt_boxes", "detections")
+
+
+@dataclass
+class ObjectOutputs:
+    """The 3D heads' outputs for N objects of a batch, image by image."""
+
+    layout: LayoutPrediction
+    shape: ShapePrediction
+    verts_cam: Tensor  # (N, V, 3) meshes in their input camera's frame
+    counts: list[int]  # objects per image
+
+
+class USLModel(nn.Module):
+    def __init__(self, cfg: ModelConfig, loss_cfg: LossConfig | None = None):
+        super().__init__()
+        if not cfg.categories:
+            raise ValueError("ModelConfig.categories is empty: fill it from the dataset (usl.engine.train does)")
+        self.cfg = cfg
+        self.loss_cfg = loss_cfg or LossConfig()
+        self.detector = MaskRCNN(len(cfg.categories), cfg.detector)
+        shapes = self.detector.backbone.output_shape()
+        for name in (*cfg.layout.in_features, cfg.shape.feature):
+            if name not in shapes:
+                raise ValueError(f"backbone has no feature {name!r}; it has {sorted(shapes)}")
+        roi_cfg = cfg.detector.roi_heads
+        self.layout_pooler = MultiScaleRoIAlign(
+            cfg.layout.in_features,
+            [shapes[n].stride for n in cfg.layout.in_features],
+            cfg.layout.pooler_resolution,
+            0,
+            roi_cfg.canonical_box_size,
+            roi_cfg.canonical_level,
+        )
+        in_channels = shapes[cfg.layout.in_features[0]].channels
+        self.layout_head = LayoutHead(in_channels, len(cfg.categories), cfg.layout, cfg.layout_range)
+        feature = shapes[cfg.shape.feature]
+        self.shape_head = ShapeHead(feature.channels, feature.stride, cfg.shape)
+        self.register_buffer("pixel_mean", torch.tensor(IMAGENET_MEAN).view(3, 1, 1), persistent=False)
+        self.register_buffer("pixel_std", torch.tensor(IMAGENET_STD).view(3, 1, 1), persistent=False)
+        if not self.loss_cfg.weights.mu_2d:
+            # Without L_2D the RPN and RoI heads never run in training: freeze them, so optimizers
+            # and DDP only see parameters that get gradients.
+            self.detector.proposal_generator.requires_grad_(False)
+            self.detector.roi_heads.requires_grad_(False)
+
+    @property
+    def faces(self) -> Tensor:
+        """(F, 3) int64 faces shared by every predicted mesh."""
+        return self.shape_head.faces
+
+    # ------------------------------------------------------------------ shared parts
+    def _backbone(self, frames: Sequence[FrameData]) -> tuple[ImageList, dict[str, Tensor]]:
+        device = self.pixel_mean.device
+        sizes = [frame.size for frame in frames]
+        height, width = max(h for h, _ in sizes), max(w for _, w in sizes)
+        batch = torch.zeros(len(frames), 3, height, width, device=device)
+        for index, frame in enumerate(frames):
+            h, w = frame.size
+            batch[index, :, :h, :w] = (frame.image.to(device) - self.pixel_mean) / self.pixel_std
+        image_list = self.detector.preprocess(batch, sizes)
+        return image_list, self.detector.backbone(image_list.tensor)
+
+    def objects(
+        self, features: dict[str, Tensor], boxes: list[Tensor], labels: list[Tensor], K: list[Tensor]
+    ) -> ObjectOutputs:
+        """Layout and shape for the given boxes (per image), cast into each input camera's frame."""
+        boxes = [b.float() for b in boxes]
+        flat_labels = torch.cat(labels).long()
+        layout = self.layout_head(self.layout_pooler(features, boxes), flat_labels)
+        shape = self.shape_head(features, boxes)
+        counts = [len(b) for b in boxes]
+        flat_K = torch.cat([k.float().expand(n, 3, 3) for k, n in zip(K, counts)])
+        with _autocast_off(shape.verts):
+            verts_cam = cube_to_frustum(shape.verts.float(), torch.cat(boxes), flat_K, layout.z, layout.rho)
+        return ObjectOutputs(layout, shape, verts_cam, counts)
+
+    # ------------------------------------------------------------------ training
+    def forward(self, samples: list[MultiViewSample]) -> dict[str, Tensor]:
+        """Weighted losses (``det/*``, ``l3d``, ``edge``, ``offset_l2``, ``laplacian``), their sum
+        ``loss``, and detached statistics under ``stat/*``."""
+        frames = [s.frame for s in samples]
+        image_list, features = self._backbone(frames)
+        weights = self.loss_cfg.weights
+        detection = None
+        if weights.mu_2d:
+            targets = [{"boxes": f.boxes, "labels": f.labels, "masks": f.masks} for f in frames]
+            gt = self.detector.targets_to_instances(targets, image_list.image_sizes)
+            proposals, rpn_losses = self.detector.proposal_generator(image_list, features, gt)
+            _, roi_losses = self.detector.roi_heads(features, proposals, gt)
+            detection = {**rpn_losses, **roi_losses}
+        outputs = self.objects(
+            features,
+            [s.frame.boxes[s.object_rows] for s in samples],
+            [s.frame.labels[s.object_rows] for s in samples],
+            [s.frame.K for s in samples],
+        )
+        with _autocast_off(outputs.verts_cam):
+            l3d, stats = multiview_silhouette_loss(outputs.verts_cam, self.faces, samples, outputs.counts, self.loss_cfg)
+            need = {name: bool(getattr(weights, name) * weights.mu_reg) for name in ("edge", "offset_l2", "laplacian")}
+            regs = shape_regularizers(outputs.shape.verts, outputs.shape.offsets, self.faces, outputs.counts, need)
+            # Keep both heads in the graph even for a batch without objects (DDP needs every gradient).
+            l3d = l3d + 0.0 * (outputs.layout.z.sum() + outputs.layout.rho.sum() + outputs.shape.verts.sum())
+            total, parts = combine_losses(weights, l3d, detection, **regs)
+        parts["loss"] = total
+        parts.update({f"stat/{k}": v for k, v in stats.items()})
+        if outputs.counts and sum(outputs.counts):
+            parts["stat/z"] = outputs.layout.z.detach().mean()
+            parts["stat/rho"] = outputs.layout.rho.detach().mean()
+        return parts
+
+    # ------------------------------------------------------------------ inference
+    @torch.no_grad()
+    def predict(self, frames: Sequence[FrameData], mode: str = "gt_boxes") -> list[ObjectPredictions]:
+        """Shapes and layouts for each input view.
+
+        ``gt_boxes``: objects are the frame's annotated instances (``boxes``, ``labels``),
+        scores 1 and ``instance_ids`` from the frame. ``detections``: the detector's output
+        after score threshold and NMS; ``instance_ids`` are -1 (the evaluator matches).
+        """
+        if mode not in MODES:
+            raise ValueError(f"predict: mode must be one of {MODES}, got {mode!r}")
+        was_training = self.training
+        self.eval()
+        try:
+            image_list, features = self._backbone(frames)
+            device = self.pixel_mean.device
+            if mode == "gt_boxes":
+                boxes = [f.boxes.to(device) for f in frames]
+                labels = [f.labels.to(device) for f in frames]
+                scores = [torch.ones(len(b), device=device) for b in boxes]
+                ids = [f.instance_ids.to(device) for f in frames]
+            else:
+                proposals, _ = self.detector.proposal_generator(image_list, features)
+                detections = self.detector.roi_heads.forward_box(features, proposals)
+                boxes = [d.pred_boxes for d in detections]
+                labels = [d.pred_classes for d in detections]
+                scores = [d.scores for d in detections]
+                ids = [torch.full((len(d),), -1, dtype=torch.int64, device=device) for d in detections]
+            outputs = self.objects(features, boxes, labels, [f.K.to(device) for f in frames])
+        finally:
+            self.train(was_training)
+        return _split_predictions(outputs, boxes, labels, scores, ids, self.faces)
+
+
+def _split_predictions(
+    outputs: ObjectOutputs, boxes: list[Tensor], labels: list[Tensor], scores: list[Tensor], ids: list[Tensor], faces: Tensor
+) -> list[ObjectPredictions]:
+    z, rho, verts = (t.split(outputs.counts) for t in (outputs.layout.z, outputs.layout.rho, outputs.verts_cam))
+    return [
+        ObjectPredictions(
+            boxes=b.float(), labels=l.long(), scores=s.float(), z=zi.float(), rho=ri.float(),
+            verts=v.float(), faces=faces, instance_ids=i.long(),
+        )
+        for b, l, s, zi, ri, v, i in zip(boxes, labels, scores, z, rho, verts, ids)
+    ]
+
+
+def _autocast_off(like: Tensor):
+    """Disable autocast on ``like``'s device type for the float32 geometry."""
+    if torch.is_autocast_enabled(like.device.type):
+        return torch.autocast(like.device.type, enabled=False)
+    return nullcontext()
