@@ -16,7 +16,10 @@ def test_chamfer_f1_matches_cKDTree_with_padding_and_several_thresholds():
     pred = torch.rand(3, 700, 3, generator=gen, dtype=torch.float64)
     gt = torch.rand(3, 500, 3, generator=gen, dtype=torch.float64) * 1.2
     pred_len, gt_len = torch.tensor([700, 300, 50]), torch.tensor([500, 500, 20])
-    out = chamfer_f1(pred, gt, pred_len, gt_len, thresholds=(0.05, 0.1), max_elements=20_000)
+    out = chamfer_f1(pred, gt, pred_len, gt_len, thresholds=(0.05, 0.1), max_elements=20_000, backend="torch")
+    fast = chamfer_f1(pred, gt, pred_len, gt_len, thresholds=(0.05, 0.1), backend="kdtree")
+    for key in out:
+        torch.testing.assert_close(fast[key], out[key], rtol=1e-4, atol=1e-5)
     for b in range(3):
         p, g = pred[b, : pred_len[b]].numpy(), gt[b, : gt_len[b]].numpy()
         d_pg, _ = cKDTree(g).query(p)
