@@ -9,6 +9,7 @@ core) and with 2 DataLoader workers side by side, so the per-core figure and sca
 from __future__ import annotations
 
 import argparse
+import os
 import random
 import time
 
@@ -41,12 +42,13 @@ class FiveViewSamples(Dataset):
         return sum(int(f.masks.shape[0]) for f in frames)
 
 
-def measure(dataset: Dataset, workers: int) -> float:
+def measure(dataset: Dataset, workers: int) -> tuple[float, float]:
+    """(samples per wall second, samples per CPU second of this process; meaningful for workers=0)."""
     loader = DataLoader(dataset, batch_size=None, num_workers=workers, shuffle=False)
-    start = time.perf_counter()
+    start, cpu = time.perf_counter(), time.process_time()
     for _ in loader:
         pass
-    return len(dataset) / (time.perf_counter() - start)
+    return len(dataset) / (time.perf_counter() - start), len(dataset) / (time.process_time() - cpu)
 
 
 def main() -> None:
@@ -59,10 +61,11 @@ def main() -> None:
     dataset = FiveViewSamples(args.root, args.split, args.samples)
     row = dataset.records.read_scene(dataset.picks[0][0], [0])[0]
     print(f"dataset {args.root} [{args.split}]: {len(dataset.records)} scenes, images {row['width']}x{row['height']}")
-    one = measure(dataset, 0)
-    two = measure(dataset, 2)
-    print(f"1 process : {one:7.1f} five-view samples/s  -> {one:7.1f} per core (target >= 40)")
-    print(f"2 workers : {two:7.1f} five-view samples/s  -> {two / 2:7.1f} per core; scaling x{two / one:.2f}")
+    one, one_cpu = measure(dataset, 0)
+    two, _ = measure(dataset, 2)
+    print(f"1 process : {one:7.1f} five-view samples/s wall, {one_cpu:7.1f} per CPU-second (target >= 40 per core)")
+    print(f"2 workers : {two:7.1f} five-view samples/s wall -> {two / 2:7.1f} per core; scaling x{two / one:.2f}")
+    print(f"load average during the run: {os.getloadavg()[0]:.1f} (wall figures need an idle machine)")
 
 
 if __name__ == "__main__":

@@ -40,12 +40,15 @@ class _OpenShard:
         meta = self.file.metadata
         self.group_starts = np.cumsum([0] + [meta.row_group(i).num_rows for i in range(meta.num_row_groups)])
 
-    def read_rows(self, first: int, count: int, columns: Sequence[str] | None) -> list[dict[str, Any]]:
-        g0 = bisect_right(self.group_starts, first) - 1
-        g1 = bisect_right(self.group_starts, first + count - 1) - 1
+    def read_rows(self, first: int, offsets: Sequence[int], columns: Sequence[str] | None) -> list[dict[str, Any]]:
+        """Rows ``first + o`` for each offset, reading only the row groups that hold them and
+        converting only those rows to Python (a scene's row groups also hold its other views)."""
+        rows = [first + o for o in offsets]
+        g0 = bisect_right(self.group_starts, min(rows)) - 1
+        g1 = bisect_right(self.group_starts, max(rows)) - 1
         table = self.file.read_row_groups(list(range(g0, g1 + 1)), columns=list(columns) if columns else None)
-        offset = first - int(self.group_starts[g0])
-        return table.slice(offset, count).to_pylist()
+        base = int(self.group_starts[g0])
+        return table.take([r - base for r in rows]).to_pylist()
 
 
 class RecordsDataset:
@@ -106,14 +109,10 @@ class RecordsDataset:
     ) -> list[dict[str, Any]]:
         loc = self._location(scene_id)
         shard = self._shard(loc.shard, "frames")
-        if views is None:
-            return shard.read_rows(loc.first_row, loc.num_rows, columns)
-        views = list(views)
+        views = list(range(loc.num_rows)) if views is None else list(views)
         if any(not 0 <= v < loc.num_rows for v in views):
             raise IndexError(f"scene {scene_id!r} has {loc.num_rows} views; asked for {views}")
-        lo, hi = min(views), max(views)
-        rows = shard.read_rows(loc.first_row + lo, hi - lo + 1, columns)
-        return [rows[v - lo] for v in views]
+        return shard.read_rows(loc.first_row, views, columns) if views else []
 
     def read_objects(self, scene_id: str) -> list[dict[str, Any]]:
         """3D ground-truth objects of a scene (empty if the dataset has none)."""
