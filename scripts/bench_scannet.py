@@ -37,6 +37,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from data_specs import load_dataset_spec  # noqa: E402
+from pipelines.common import BuildOptions, ShardPlan, run_build  # noqa: E402
 from pipelines.scannet.convert import ConvertOptions, ScanUnit, build_scene, scene_frames, track_scan  # noqa: E402
 from pipelines.scannet.detections_file import DetectionsFileSource, split_detections  # noqa: E402
 from pipelines.scannet.grid import OutputGrid  # noqa: E402
@@ -141,7 +142,7 @@ def speed(work: Path, config: Config, num_frames: int) -> dict[str, float]:
             if stride == 1:
                 out["detections/frame"] = tracked.num_detections / len(tracked.poses)
                 start = time.process_time()
-                rows = scene_frames(scan, tracked, grid, opts)
+                rows = list(scene_frames(scan, tracked, grid, opts))
                 out["encode fps (pass 2)"] = len(rows) / (time.process_time() - start)
                 out["record MB/frame"] = sum(len(r["image"]) + len(r["depth"] or b"") for r in rows) / len(rows) / 2**20
     start = time.process_time()
@@ -172,8 +173,12 @@ def rss_child(work: Path, mode: str, num_frames: int, name: str) -> None:
         with open_scan(scan_dir, "scene0100_00") as scan:
             grid = OutputGrid.for_scan(scan.calibration, config.out)
             track_scan(scan, source.open_scan(scan), grid, options(config, 1))
-    else:
-        build_scene(ScanUnit("scene0100_00", str(scan_dir), source, options(config, 1)))
+    else:  # the whole conversion as usl-convert-scannet runs it: worker and shard writer in this process
+        out = work / f"records-{num_frames}"
+        shutil.rmtree(out, ignore_errors=True)
+        unit = ScanUnit("scene0100_00", str(scan_dir), source, options(config, 1))
+        run_build(BuildOptions(out, progress=False), SPEC, {}, [ShardPlan("train", 0, [unit])], build_scene, {})
+        shutil.rmtree(out)
     print(f"{high_water_mib():.1f}")
 
 
@@ -219,7 +224,7 @@ def main() -> None:
         config = CONFIGS[1]
         for mode in ("track", "build"):
             rss = {n: peak_rss(args.work, config, n, mode) for n in (200, 800)}
-            what = "pass 1 (decode+track)" if mode == "track" else "whole scene (records in memory)"
+            what = "pass 1 (decode+track)" if mode == "track" else "whole conversion (run_build, 1 worker)"
             print(f"peak RSS, {config.name}, {what}: 200 frames {rss[200]:.0f} MiB, 800 frames {rss[800]:.0f} MiB "
                   f"(+{rss[800] - rss[200]:.0f} MiB for 4x the frames)", flush=True)
             results[f"rss {mode}"] = rss

@@ -9,6 +9,7 @@ from .driver import (
     fingerprint_from_args,
     run_build,
 )
+from .spill import frame_sink
 
 __all__ = [
     "BuildOptions",
@@ -18,5 +19,6 @@ __all__ = [
     "build_options_from_args",
     "creator_from_args",
     "fingerprint_from_args",
+    "frame_sink",
     "run_build",
 ]

@@ -3,11 +3,13 @@
 Lives in ``<out>/.build/``: ``build.json`` (dataset name + fingerprint of everything that determines
 the output) and one marker per finished shard (its ShardResult, checksums included). A marker is
 written only after the shard files were renamed into place, so marker present + checksum match
-means the shard is complete.
+means the shard is complete. ``spill/`` holds frame rows of long scenes on their way from a worker
+to a shard; it never outlives a run, so a new run empties it.
 """
 from __future__ import annotations
 
 import json
+import shutil
 from dataclasses import asdict
 from pathlib import Path
 from typing import Any
@@ -47,6 +49,14 @@ class BuildState:
             raise UslError(f"{self.root}: output folder is not empty and was not made by this build; choose a new --out")
         self.dir.mkdir(parents=True, exist_ok=True)
         write_json_atomic(build_file, identity)
+
+    @property
+    def spill_dir(self) -> Path:
+        return self.dir / "spill"
+
+    def clear_spills(self) -> None:
+        """Remove spill files a killed or failed run left behind (nothing ever reads them again)."""
+        shutil.rmtree(self.spill_dir, ignore_errors=True)
 
     def _marker(self, split: str, index: int) -> Path:
         return self.dir / f"{split}-{index:05d}.json"

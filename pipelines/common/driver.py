@@ -3,6 +3,8 @@
 A pipeline supplies an ordered list of ``ShardPlan`` (which scenes go into which shard, fixed by
 its arguments alone) and a picklable ``build_scene(unit) -> SceneRecord``. Output is then the same
 whatever ``--workers`` is, and a re-run with the same arguments keeps every finished shard.
+A ``build_scene`` that writes its rows through ``frame_sink`` streams long scenes via spill files,
+so neither the worker nor this process ever holds a whole long scene.
 """
 from __future__ import annotations
 
@@ -11,6 +13,7 @@ import multiprocessing as mp
 import sys
 import time
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 from typing import Any, Callable, Iterator
 
@@ -22,6 +25,7 @@ from usl.records.manifest import build_manifest, dataset_metadata, write_json_at
 from usl.records.shards import ShardWriter, remove_stale_temp_files
 
 from .build_state import BuildState
+from .spill import init_build_process, set_spill_dir
 
 
 @dataclass
@@ -112,11 +116,10 @@ def creator_from_args(command: str, args: argparse.Namespace) -> dict[str, Any]:
 
 
 def _scene_stream(
-    build_scene: Callable[[Any], SceneRecord], units: list[Any], workers: int, initializer: Callable[[], None] | None
+    build_scene: Callable[[Any], SceneRecord], units: list[Any], workers: int, initializer: Callable[[], None]
 ) -> Iterator[SceneRecord]:
     if workers == 1 or len(units) <= 1:
-        if initializer:
-            initializer()
+        initializer()
         yield from map(build_scene, units)
         return
     # spawn: no forked GL contexts, torch thread pools or open file handles in the workers.
@@ -138,6 +141,8 @@ def run_build(
     state = BuildState(options.out, spec["name"], fingerprint)
     state.claim()
     remove_stale_temp_files(options.out)
+    state.clear_spills()
+    state.spill_dir.mkdir()
     summary = BuildSummary()
     results: dict[tuple[str, int], dict[str, Any]] = {}
     todo: list[ShardPlan] = []
@@ -152,22 +157,23 @@ def run_build(
     units = [unit for plan in todo for unit in plan.units]
     metadata = dataset_metadata(spec)
     bar = tqdm(total=len(units), desc=f"{spec['name']}: scenes", unit="scene", disable=not options.progress)
-    stream = _scene_stream(build_scene, units, options.workers, worker_initializer)
+    initializer = partial(init_build_process, state.spill_dir, worker_initializer)
+    stream = _scene_stream(build_scene, units, options.workers, initializer)
     try:
         for plan in todo:
             with ShardWriter(options.out, plan.split, plan.index, metadata) as writer:
                 for _ in plan.units:
-                    record = next(stream)
-                    writer.add_scene(record)
+                    summary.frames += writer.add_scene(next(stream))
                     summary.scenes += 1
-                    summary.frames += len(record.frames)
                     bar.update(1)
                 result = writer.close()
             results[(plan.split, plan.index)] = state.record(result)
             summary.built_shards += 1
     finally:
-        stream.close()
+        stream.close()  # stops the pool first: no worker writes spills any more
         bar.close()
+        set_spill_dir(None)  # the inline path set it in this process
+        state.clear_spills()
 
     summary.pending_shards = [f"{p.split}/{p.index}" for p in plans if (p.split, p.index) not in results]
     finished = list(results.values())

@@ -3,7 +3,8 @@
 Pass 1 reads poses, depth and the mask source frame by frame and feeds the tracker; it keeps only
 RLE masks and a few depth maps for warping. Which tracks are long enough is known only at the end,
 so pass 2 reads again the frames that hold an object's observation and encodes them (image as
-stored when no resize is needed, depth as 16-bit PNG). Nothing decoded outlives its frame.
+stored when no resize is needed, depth as 16-bit PNG). Nothing decoded outlives its frame, and
+encoded rows go to the build's ``frame_sink`` one by one, so memory does not grow with scan length.
 """
 from __future__ import annotations
 
@@ -11,10 +12,12 @@ from collections import Counter, defaultdict
 from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
+from typing import Iterator
 
 import numpy as np
 from pycocotools import mask as mask_utils
 
+from pipelines.common import frame_sink
 from usl.records import SceneRecord, Skip, UslError, encode_depth, frame_row, make_instance
 
 from .grid import OutputGrid
@@ -124,14 +127,13 @@ def track_scan(scan: Scan, masks: ScanMasks, grid: OutputGrid, options: ConvertO
     return TrackedScan(tracker.tracks, tracker.objects(), poses, skips, num_detections)
 
 
-def scene_frames(scan: Scan, tracked: TrackedScan, grid: OutputGrid, options: ConvertOptions) -> list[dict]:
-    """Pass 2: one record row per frame that holds at least one object observation."""
+def scene_frames(scan: Scan, tracked: TrackedScan, grid: OutputGrid, options: ConvertOptions) -> Iterator[dict]:
+    """Pass 2: one record row per frame that holds at least one object observation, in frame order."""
     by_frame: dict[int, list[tuple[int, int, dict]]] = defaultdict(list)
     for track in tracked.objects:
         category = track.category_id
         for frame, det in zip(track.frames, track.detections):
             by_frame[frame].append((track.track_id, category, det.rle))
-    rows = []
     for index, pose in tracked.poses.items():
         observations = sorted(by_frame.get(index, []), key=lambda o: o[0])
         masks = [(iid, cat, grid.mask(mask_utils.decode(rle))) for iid, cat, rle in observations]
@@ -144,20 +146,20 @@ def scene_frames(scan: Scan, tracked: TrackedScan, grid: OutputGrid, options: Co
         instances = [make_instance(iid, cat, mask.astype(bool), depth) for iid, cat, mask in kept]
         depth_png = encode_depth(depth) if options.store_depth else None
         image = grid.image(scan, index, options.jpeg_quality)
-        rows.append(frame_row(scan.scene_id, index, image, grid.K, pose, instances, grid.height, grid.width, depth_png))
-    return rows
+        yield frame_row(scan.scene_id, index, image, grid.K, pose, instances, grid.height, grid.width, depth_png)
 
 
 def build_scene(unit: ScanUnit) -> SceneRecord:
-    """The shared driver's per-unit function: tracks and frames of one scan (top level: picklable)."""
-    scan = open_scan(Path(unit.scene_dir), unit.scene_id)
-    try:
+    """The shared driver's per-unit function: tracks and frames of one scan (top level: picklable).
+
+    Inside a build, a scan's rows past the first row group are spilled to disk as they are encoded.
+    """
+    with open_scan(Path(unit.scene_dir), unit.scene_id) as scan, frame_sink(unit.scene_id) as sink:
         grid = OutputGrid.for_scan(scan.calibration, unit.options.size)
         tracked = track_scan(scan, unit.masks.open_scan(scan), grid, unit.options)
         if tracked.num_detections == 0:
             tracked.skips[SKIP_NO_DETECTIONS] += 1
-        frames = scene_frames(scan, tracked, grid, unit.options)
-    finally:
-        scan.close()
-    skips = [Skip(reason, str(scan.path), count) for reason, count in sorted(tracked.skips.items()) if count]
-    return SceneRecord(unit.scene_id, frames, skips=skips)
+        for row in scene_frames(scan, tracked, grid, unit.options):
+            sink.add(row)
+        skips = [Skip(reason, str(scan.path), count) for reason, count in sorted(tracked.skips.items()) if count]
+        return sink.finish(skips=skips)

@@ -1,13 +1,11 @@
 """Writer/driver/reader round trip: resume after a killed build, worker/rank partition, errors."""
 import json
-import os
 import subprocess
 import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
-import torch
 from torch.utils.data import DataLoader
 
 from fake_scenes import SPEC, build_fake_scene

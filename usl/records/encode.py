@@ -6,6 +6,7 @@ masks the same way everywhere (DESIGN.md §2-3).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import cv2
@@ -185,9 +186,14 @@ class Skip:
 
 @dataclass
 class SceneRecord:
-    """Everything one scene contributes to a shard."""
+    """Everything one scene contributes to a shard.
+
+    Frame rows are in ``frames``, or, for a long scene a worker streamed to disk (``FrameSink``), in
+    the Parquet file ``frames_file``: then they never travel between processes or sit whole in memory.
+    """
 
     scene_id: str
     frames: list[dict[str, Any]]
     objects: list[dict[str, Any]] = field(default_factory=list)
     skips: list[Skip] = field(default_factory=list)
+    frames_file: Path | None = None

@@ -3,14 +3,20 @@
 A shard is a ``frames-NNNNN.parquet`` file and, when the dataset has 3D ground truth, a matching
 ``objects-NNNNN.parquet``. Nothing appears under its final name until it is complete, so a killed
 build leaves only temp files, which the next run removes and redoes.
+
+A long scene (a whole video) need not be in memory at once: a ``FrameSink`` in the worker spills
+its rows to a Parquet file group by group, and ``ShardWriter`` copies that file group by group.
+Row groups are cut the same way whichever path a scene takes, so the shard bytes do not depend on it.
 """
 from __future__ import annotations
 
 import hashlib
 import os
+import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterable, Iterator, Sequence
+from urllib.parse import quote
 
 import numpy as np
 import pyarrow as pa
@@ -98,6 +104,12 @@ class _TableStream:
         self.writer.write_table(table, row_group_size=MAX_ROWS_PER_GROUP)
         self.rows += table.num_rows
 
+    def publish(self) -> Path:
+        """Close and rename without fsync or checksum: a spill never outlives the run that wrote it."""
+        self.writer.close()
+        os.replace(self.tmp, self.final)
+        return self.final
+
     def commit(self) -> dict[str, Any]:
         self.writer.close()
         with open(self.tmp, "rb") as f:
@@ -118,8 +130,86 @@ class _TableStream:
             self.tmp.unlink(missing_ok=True)
 
 
+def check_view_order(scene_id: str, scene_ids: Sequence[str], views: Sequence[int], last: int | None) -> int | None:
+    """Raise unless the rows belong to ``scene_id`` and their views ascend strictly after ``last``.
+
+    Returns the new last view, so a scene can be checked piece by piece as it streams.
+    """
+    for row_scene, view in zip(scene_ids, views):
+        if row_scene != scene_id:
+            raise ValueError(f"scene {scene_id!r}: a frame row carries another scene_id ({row_scene!r})")
+        if last is not None and view <= last:
+            raise ValueError(f"scene {scene_id!r}: frames must have unique, ascending view_id ({view} after {last})")
+        last = view
+    return last
+
+
+class FrameSink:
+    """Collects one scene's frame rows so that a long scene is never whole in memory.
+
+    The first ``MAX_ROWS_PER_GROUP`` rows stay in memory (a short scene costs no disk round trip).
+    Past that, with a ``spill_dir``, rows go to a spill file there in row groups, and ``finish``
+    returns a ``SceneRecord`` that names the file instead of holding the rows. Without a spill dir
+    (``build_scene`` called outside a build) everything stays in memory. Rows are checked as they
+    come, so a pipeline bug fails at the offending row, not after the whole scan.
+    """
+
+    def __init__(self, scene_id: str, spill_dir: Path | None):
+        self.scene_id = scene_id
+        self._spill_dir = spill_dir
+        self._rows: list[dict[str, Any]] = []
+        self._spill: _TableStream | None = None
+        self._last_view: int | None = None
+
+    def add(self, row: dict[str, Any]) -> None:
+        self._last_view = check_view_order(self.scene_id, [row["scene_id"]], [row["view_id"]], self._last_view)
+        self._rows.append(row)
+        if len(self._rows) > MAX_ROWS_PER_GROUP and self._spill_dir is not None:
+            if self._spill is None:
+                name = f"{quote(self.scene_id, safe='')}-{uuid.uuid4().hex[:12]}.parquet"  # ids may hold "/"
+                self._spill = _TableStream(Path(self._spill_dir) / name, table_schema("frames"), True)
+            self._spill.write(frames_table(self._rows[:MAX_ROWS_PER_GROUP], self._spill.schema))
+            del self._rows[:MAX_ROWS_PER_GROUP]
+
+    def finish(self, objects: Iterable[dict[str, Any]] = (), skips: Iterable[Skip] = ()) -> SceneRecord:
+        """The scene's record; its spill file (if any) is complete and belongs to the shard writer now."""
+        if self._spill is None:
+            return SceneRecord(self.scene_id, self._rows, list(objects), list(skips))
+        if self._rows:
+            self._spill.write(frames_table(self._rows, self._spill.schema))
+            self._rows = []
+        return SceneRecord(self.scene_id, [], list(objects), list(skips), frames_file=self._spill.publish())
+
+    def abort(self) -> None:
+        if self._spill is not None:
+            self._spill.abort()
+
+    def __enter__(self) -> "FrameSink":
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is not None:
+            self.abort()
+
+
+def _frame_chunks(record: SceneRecord, schema: pa.Schema) -> Iterator[pa.Table]:
+    """A scene's frame rows as Arrow tables, reading a spill file one row group at a time."""
+    if record.frames_file is None:
+        if record.frames:
+            yield frames_table(record.frames, schema)
+        return
+    with pq.ParquetFile(record.frames_file) as spill:
+        for group in range(spill.num_row_groups):
+            yield spill.read_row_group(group).replace_schema_metadata(schema.metadata)
+
+
 class ShardWriter:
-    """Streams scenes into one shard; use as a context manager so failures leave no partial file."""
+    """Streams scenes into one shard; use as a context manager so failures leave no partial file.
+
+    Row groups hold ``MAX_ROWS_PER_GROUP`` rows; a batch of scenes ends once it holds
+    ``MAX_SCENES_PER_GROUP`` scenes or a full group, and its last group may be shorter. Rows are
+    cut into groups as they arrive, so at most one group is held, however long a scene is.
+    """
 
     def __init__(self, root: Path, split: str, index: int, metadata: dict[str, Any]):
         self.split, self.index = split, index
@@ -131,45 +221,69 @@ class ShardWriter:
         self._objects_path = directory / f"objects-{index:05d}.parquet"
         self._objects_schema = with_metadata(table_schema("objects"), metadata)
         self._objects: _TableStream | None = None
-        self._pending: list[SceneRecord] = []
+        self._group: list[pa.Table] = []  # pieces of the row group being filled
+        self._group_rows = 0
+        self._rows = 0  # rows added to the shard so far, written or in the group
+        self._batch_scenes = 0
+        self._batch_rows = 0
+        self._batch_objects: list[dict[str, Any]] = []
         self._scenes: list[list[Any]] = []
         self._skips: list[Skip] = []
         self._seen: set[str] = set()
 
-    def add_scene(self, record: SceneRecord) -> None:
+    def add_scene(self, record: SceneRecord) -> int:
+        """Append one scene (rows in memory or in its spill file, which is then deleted); its row count."""
         if record.scene_id in self._seen:
             raise ValueError(f"scene {record.scene_id!r} added twice to shard {self.split}/{self.index}")
-        views = [f["view_id"] for f in record.frames]
-        if views != sorted(views) or len(set(views)) != len(views):
-            raise ValueError(f"scene {record.scene_id!r}: frames must have unique, ascending view_id")
-        if any(f["scene_id"] != record.scene_id for f in record.frames):
-            raise ValueError(f"scene {record.scene_id!r}: a frame row carries another scene_id")
+        if record.frames and record.frames_file is not None:
+            raise ValueError(f"scene {record.scene_id!r}: frames given both in memory and in {record.frames_file}")
         self._seen.add(record.scene_id)
         self._skips.extend(record.skips)
-        if not record.frames:
-            return
-        self._pending.append(record)
-        if len(self._pending) >= MAX_SCENES_PER_GROUP or sum(len(r.frames) for r in self._pending) >= MAX_ROWS_PER_GROUP:
-            self._flush()
+        first, last_view = self._rows, None
+        for chunk in _frame_chunks(record, self._frames.schema):
+            columns = chunk.select(["scene_id", "view_id"]).to_pydict()
+            last_view = check_view_order(record.scene_id, columns["scene_id"], columns["view_id"], last_view)
+            self._append(chunk)
+        if record.frames_file is not None:
+            Path(record.frames_file).unlink()  # copied: free the disk now, not at the shard's end
+        count = self._rows - first
+        if count == 0:
+            return 0
+        self._scenes.append([record.scene_id, first, count])
+        self._batch_scenes += 1
+        self._batch_rows += count
+        self._batch_objects.extend(record.objects)
+        if self._batch_scenes >= MAX_SCENES_PER_GROUP or self._batch_rows >= MAX_ROWS_PER_GROUP:
+            self._end_batch()
+        return count
 
-    def _flush(self) -> None:
-        if not self._pending:
-            return
-        frames: list[dict[str, Any]] = []
-        objects: list[dict[str, Any]] = []
-        for record in self._pending:
-            self._scenes.append([record.scene_id, self._frames.rows + len(frames), len(record.frames)])
-            frames.extend(record.frames)
-            objects.extend(record.objects)
-        self._frames.write(frames_table(frames, self._frames.schema))
-        if objects:
+    def _append(self, chunk: pa.Table) -> None:
+        while chunk.num_rows:
+            take = min(chunk.num_rows, MAX_ROWS_PER_GROUP - self._group_rows)
+            self._group.append(chunk.slice(0, take))
+            self._group_rows += take
+            self._rows += take
+            chunk = chunk.slice(take)
+            if self._group_rows == MAX_ROWS_PER_GROUP:
+                self._write_group()
+
+    def _write_group(self) -> None:
+        if self._group_rows:
+            # One contiguous chunk, so the bytes cannot depend on how the group was pieced together
+            # (a Parquet writer may cut pages at input chunk boundaries).
+            self._frames.write(pa.concat_tables(self._group).combine_chunks())
+        self._group, self._group_rows = [], 0
+
+    def _end_batch(self) -> None:
+        self._write_group()
+        if self._batch_objects:
             if self._objects is None:
                 self._objects = _TableStream(self._objects_path, self._objects_schema, False)
-            self._objects.write(objects_table(objects, self._objects_schema))
-        self._pending.clear()
+            self._objects.write(objects_table(self._batch_objects, self._objects_schema))
+        self._batch_scenes, self._batch_rows, self._batch_objects = 0, 0, []
 
     def close(self) -> ShardResult:
-        self._flush()
+        self._end_batch()
         objects = self._objects.commit() if self._objects is not None else None
         frames = self._frames.commit()
         skips = [{"reason": s.reason, "path": s.path, "count": s.count} for s in self._skips]

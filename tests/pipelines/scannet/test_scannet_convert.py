@@ -8,8 +8,10 @@ import pickle
 from collections import defaultdict
 
 import numpy as np
+import pyarrow.parquet as pq
 import pytest
 
+from pipelines.common.spill import set_spill_dir
 from pipelines.scannet.cli import main
 from pipelines.scannet.convert import SKIP_DEPTH, SKIP_POSE, ConvertOptions, ScanUnit, build_scene
 from pipelines.scannet.scannet_labels import ScanNetLabelsSource
@@ -160,3 +162,21 @@ def test_manifest_records_the_tracking_arguments(converted):
     creator = load_manifest(converted)["creator"]
     assert creator["command"] == "usl-convert-scannet"
     assert creator["arguments"]["min_track_frames"] == 50 and json.dumps(creator)
+
+
+def test_inside_a_build_a_scan_streams_its_rows_to_a_spill_file(synthetic, tmp_path):
+    source = ScanNetLabelsSource(str(synthetic.labels), ((1, "chair"), (2, "couch"), (7, "tv")))
+    unit = ScanUnit(SENS_SCENE, str(synthetic.sens.parent), source, ConvertOptions(stride=1, size=(48, 36)))
+    in_memory = build_scene(unit)  # outside a build: rows in the record
+    set_spill_dir(tmp_path)  # what run_build does in every worker
+    try:
+        streamed = build_scene(unit)
+    finally:
+        set_spill_dir(None)
+    assert streamed.frames == [] and streamed.frames_file.parent == tmp_path
+    assert streamed.skips == in_memory.skips
+    spilled = pq.read_table(streamed.frames_file).to_pylist()
+    assert len(spilled) == len(in_memory.frames) == 120 - len(synthetic.lost)
+    for a, b in zip(spilled, in_memory.frames):
+        assert (a["view_id"], a["image"], a["depth"], a["K"]) == (b["view_id"], b["image"], b["depth"], b["K"])
+        assert json.dumps(a["instances"]) == json.dumps(b["instances"])  # NaN depth_min compares equal as text

@@ -1,0 +1,40 @@
+"""Where build workers spill the frame rows of long scenes, and the sink pipelines write them to.
+
+``run_build`` tells every worker process (and, with one worker, its own process) the spill folder
+through the pool initializer; ``build_scene`` functions then only call ``frame_sink(scene_id)`` and
+need not know whether they run inside a build, in which process, or how long the scene will be.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Callable
+
+from usl.records.shards import FrameSink
+
+_spill_dir: Path | None = None  # set per process by run_build; None outside a build
+
+
+def frame_sink(scene_id: str) -> FrameSink:
+    """A sink for one scene's frame rows, in order of view_id::
+
+        with frame_sink(scene_id) as sink:
+            for ...:
+                sink.add(frame_row(...))
+            return sink.finish(objects, skips)
+
+    Inside a build a long scene is spilled to disk (the record names the file); outside one
+    (tests, benchmarks calling ``build_scene`` directly) the record holds its rows.
+    """
+    return FrameSink(scene_id, _spill_dir)
+
+
+def set_spill_dir(path: Path | None) -> None:
+    global _spill_dir
+    _spill_dir = path
+
+
+def init_build_process(spill_dir: Path | None, initializer: Callable[[], None] | None) -> None:
+    """Pool initializer: the spill folder first, then the pipeline's own initializer."""
+    set_spill_dir(spill_dir)
+    if initializer is not None:
+        initializer()
