@@ -26,6 +26,7 @@ from dataclasses import dataclass
 
 import torch
 
+from usl.metrics.boxes import masks_to_boxes
 from usl.render.resample import resample_mask_area
 from usl.render.screen import check_packed_inputs, project_faces
 from usl.render.soft import SoftRasterSettings, rasterize_soft
@@ -100,28 +101,17 @@ def render_dynamic(
 def mask_boxes(masks: Tensor | Sequence[Tensor]) -> Tensor:
     """(P, 4) float64 pixel-frame boxes [x0, y0, x1, y1] of the masks' True pixels.
 
-    An empty mask gets the empty box (+inf, +inf, -inf, -inf), neutral for unions.
+    The tight box is the metrics' one (``usl.metrics.masks_to_boxes``); an empty mask gets the
+    empty box (+inf, +inf, -inf, -inf) instead of NaN, because here boxes are united.
     """
     if isinstance(masks, Tensor) and masks.dim() == 3:
-        return _boxes_of_dense(masks)
-    return torch.cat([_boxes_of_dense(m.unsqueeze(0)) for m in masks]) if len(masks) else torch.zeros(0, 4, dtype=torch.float64)
-
-
-def _boxes_of_dense(masks: Tensor) -> Tensor:
-    cols, rows = masks.any(dim=1), masks.any(dim=2)  # (P, W), (P, H)
-    x0, x1 = _first_last(cols)
-    y0, y1 = _first_last(rows)
-    boxes = torch.stack([x0, y0, x1, y1], dim=1).to(torch.float64)
-    empty = ~cols.any(dim=1)
-    return torch.where(empty[:, None], _empty_boxes(masks.shape[0], masks.device), boxes)
-
-
-def _first_last(flags: Tensor) -> tuple[Tensor, Tensor]:
-    """First True index and one past the last True index along dim 1."""
-    length = flags.shape[1]
-    first = flags.to(torch.uint8).argmax(dim=1)
-    last = length - flags.flip(1).to(torch.uint8).argmax(dim=1)
-    return first, last
+        boxes = masks_to_boxes(masks).to(torch.float64)
+    elif len(masks):
+        boxes = torch.cat([masks_to_boxes(m.unsqueeze(0)) for m in masks]).to(torch.float64)
+    else:
+        return torch.zeros(0, 4, dtype=torch.float64)
+    empty = boxes.isnan().any(dim=1, keepdim=True)
+    return torch.where(empty, _empty_boxes(boxes.shape[0], boxes.device), boxes)
 
 
 def _empty_boxes(count: int, device: torch.device) -> Tensor:
