@@ -38,6 +38,11 @@ def project(points_cam: Tensor, K: Tensor) -> tuple[Tensor, Tensor]:
     return h[..., :2] / safe_w.unsqueeze(-1), w
 
 
+def pixel_rays(uv: Tensor, K: Tensor) -> Tensor:
+    """Rays ``K^-1 [u, v, 1]`` (..., N, 3) through pixels (..., N, 2); scaled so ``(K X)_3 = 1``."""
+    return to_homogeneous(uv) @ torch.linalg.inv(K).transpose(-1, -2)
+
+
 def unproject(uv: Tensor, depth: Tensor, K: Tensor) -> Tensor:
     """Back-project pixels with *planar* depth (camera-frame z) to camera-frame points.
 
@@ -46,7 +51,7 @@ def unproject(uv: Tensor, depth: Tensor, K: Tensor) -> Tensor:
     Args:
         uv: (..., N, 2) pixel coordinates; depth: (..., N) planar depth; K: (..., 3, 3).
     """
-    rays = to_homogeneous(uv) @ torch.linalg.inv(K).transpose(-1, -2)
+    rays = pixel_rays(uv, K)
     return rays * (depth / rays[..., 2]).unsqueeze(-1)
 
 

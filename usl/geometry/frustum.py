@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import torch
 
-from usl.geometry.cameras import to_homogeneous
+from usl.geometry.cameras import pixel_rays
 
 Tensor = torch.Tensor
 
@@ -65,7 +65,7 @@ def cube_to_frustum(points_cube: Tensor, boxes: Tensor, K: Tensor, z: Tensor, rh
     """
     centre, half = _box_affine(boxes)
     uv = centre.unsqueeze(-2) + half.unsqueeze(-2) * points_cube[..., :2]
-    rays = to_homogeneous(uv) @ torch.linalg.inv(K).transpose(-1, -2)
+    rays = pixel_rays(uv, K)
     a, b = _inverse_depth_line(z, rho)
     inv_depth = a.unsqueeze(-1) + b.unsqueeze(-1) * points_cube[..., 2]
     return rays / torch.clamp(inv_depth, min=MIN_INV_DEPTH).unsqueeze(-1)
