@@ -1,12 +1,23 @@
-"""Prints the main job's table and checks the claim the README makes: USL beats the fixed-depth and
-random-depth baselines on Mask IoU (other views) and 3D Chamfer. Exits 1 if it does not."""
+"""Prints the main job's held-out table and checks what the README claims of it.
+
+The claim (exit 1 if it fails): on Scene-Shapes scenes the model never saw (a build with another
+--seed), USL beats the fixed-depth and random-depth spheres on all four metrics. The learning
+targets of the tiny recipe (issue F) are printed as MET / MISSED next to it, without failing
+the job: they are goals measured on a shared machine, not guarantees.
+"""
 from __future__ import annotations
 
 import json
 import sys
 from pathlib import Path
 
-CLAIMS = (("mask_iou_views", "higher"), ("chamfer", "lower"))
+METRICS = (("chamfer", "lower"), ("f1", "higher"), ("mask_iou_input", "higher"), ("mask_iou_views", "higher"))
+# metrics.json stores IoUs as fractions, F1 in percent (as the table prints them x100 / as is)
+TARGETS = {"chamfer": 0.060, "f1": 50.0, "mask_iou_input": 0.50, "mask_iou_views": 0.33}
+
+
+def better(ours: float, theirs: float, direction: str) -> bool:
+    return ours < theirs if direction == "lower" else ours > theirs
 
 
 def main(metrics_path: str) -> int:
@@ -14,13 +25,16 @@ def main(metrics_path: str) -> int:
     rows = {p["name"]: p["metrics"] for p in report["predictors"]}
     print((Path(metrics_path).parent / "table.md").read_text())
     ok = True
-    for metric, better in CLAIMS:
+    for metric, direction in METRICS:
         ours = rows["USL"][metric]
         for baseline in ("Fixed depth", "Random depth"):
-            theirs = rows[baseline][metric]
-            wins = ours > theirs if better == "higher" else ours < theirs
+            wins = better(ours, rows[baseline][metric], direction)
             ok &= wins
-            print(f"{'PASS' if wins else 'FAIL'}: USL {metric} {ours:.3f} vs {baseline} {theirs:.3f} ({better} is better)")
+            print(f"{'PASS' if wins else 'FAIL'}: USL {metric} {ours:.3f} vs {baseline} {rows[baseline][metric]:.3f} ({direction} is better)")
+    for metric, direction in METRICS:
+        ours, goal = rows["USL"][metric], TARGETS[metric]
+        met = ours <= goal if direction == "lower" else ours >= goal
+        print(f"target {'MET' if met else 'MISSED'}: USL {metric} {ours:.3f} ({'<=' if direction == 'lower' else '>='} {goal})")
     return 0 if ok else 1
 
 

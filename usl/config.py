@@ -19,7 +19,7 @@ from typing import Any, Mapping, Sequence
 
 import yaml
 
-from usl.losses import LossWeights
+from usl.losses import LossWeights, PiecewiseLinear
 from usl.model.detector import DetectorConfig
 from usl.render import SoftRasterSettings
 
@@ -76,9 +76,13 @@ class ShapeHeadConfig:
     feature: str = "p2"  # backbone map the vertex features come from
     sampler: str = "roimap"  # "roimap" (paper) | "vertalign" (Mesh R-CNN, the ablation)
     vertalign_resolution: int = 14  # RoIAlign size of the VertAlign ablation
+    # GraphConv weight init: "normal" N(0, 0.01²) (Mesh R-CNN) | "kaiming" (He init for the
+    # neighbourhood sum): with "normal" three GraphConvs pass ~1% of the image features on
+    graph_conv_init: str = "normal"
 
     def __post_init__(self) -> None:
         _check_choice("model.shape.sampler", self.sampler, ("roimap", "vertalign"))
+        _check_choice("model.shape.graph_conv_init", self.graph_conv_init, ("normal", "kaiming"))
         _check_positive("model.shape.num_stages", self.num_stages)
 
 
@@ -124,9 +128,22 @@ class LossConfig:
     # 1024 = (1/32 of the longer side)^-2: an error of 1/32 of the image costs 1, so the layout
     # signal is not drowned by l_xent and the regularizers at any image resolution.
     dist_scale: float = 1024.0
+    # Factor on dist_scale by iteration (piecewise linear through iters/values; empty = 1, the
+    # paper's constant balance). E.g. {iters: [300, 900], values: [1.0, 0.25]} lets l_dist place
+    # the layout first, then hands the shape to l_xent.
+    dist_schedule: PiecewiseLinear = field(default_factory=PiecewiseLinear)
     mesh_points: int = 1000  # points sampled on each mesh surface for l_dist
     mask_points: int = 1000  # points sampled in each true silhouette for l_dist
     iou_threshold: float = 0.5  # l_xent applies only above this IoU (paper Eq. 4)
+    # The gate exists because l_xent says nothing about layout when silhouettes do not overlap.
+    # In the input view they always do: the 2D box fixes the projection whatever z and rho are.
+    # False applies l_xent there ungated, so thin objects (tables start at IoU ~0.2) get a shape
+    # signal from the first step; True is the paper's gate in every view.
+    gate_input_view: bool = True
+    # True masks show only visible parts. True: cells covered by another object's true mask are
+    # left out of this object's l_xent (it may be hidden there), instead of teaching it to carve
+    # away what an occluder covers. False: the paper's per-object comparison.
+    ignore_occluders: bool = False
 
 
 @dataclass

@@ -75,3 +75,16 @@ def test_saved_config_reloads_identically(tmp_path):
     assert load_config(tmp_path / "config.yaml") == cfg
     assert config_from_dict(to_dict(cfg)) == cfg
     assert config_from_dict({}) == Config()
+
+
+def test_paper_recipes_keep_the_papers_loss_and_init_while_tiny_documents_its_changes():
+    """Issue F's CPU-scale findings are options: only `tiny` turns them on."""
+    for name in ("scene_shapes", "hypersim", "scannet"):
+        cfg = load_config(name)
+        assert cfg.loss.gate_input_view and not cfg.loss.ignore_occluders, name
+        assert cfg.loss.dist_schedule.iters == () and cfg.loss.dist_schedule(10**5) == 1.0, name
+        assert cfg.model.shape.graph_conv_init == "normal" and cfg.loss.iou_threshold == 0.5, name
+    tiny = load_config("tiny")
+    assert not tiny.loss.gate_input_view and tiny.loss.ignore_occluders
+    assert tiny.model.shape.graph_conv_init == "kaiming" and tiny.loss.render.resolution == 64
+    assert tiny.loss.dist_schedule(0) == 1.0 and tiny.loss.dist_schedule(tiny.optim.max_iter) < 1.0

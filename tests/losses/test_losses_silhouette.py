@@ -127,3 +127,29 @@ def test_bce_values_iou_gate_and_valid_cells():
 def _masked_mean(soft, true, valid):
     per = -(true * soft.log() + (1 - true) * (1 - soft).log())
     return torch.stack([per[i][valid[i]].mean() for i in range(len(per))])
+
+
+def test_bce_diagnostics_leave_out_the_log_clamp_and_count_unreached_true_pixels():
+    """BCE clamps log(0) to -100: true pixels that no face reaches (soft exactly 0) add 100 each
+    and no gradient. ``loss_reached`` is the mean over the other cells, ``unreached`` the share of
+    true (coverage-weighted) pixels with soft == 0; computed here directly in numpy."""
+    gen = torch.Generator().manual_seed(3)
+    soft = torch.rand(3, 8, 8, generator=gen, dtype=DT) * 0.98 + 0.01
+    soft[:, :, 6:] = 0.0  # no face reaches the two right columns
+    soft[2, 0, 0] = 1.0  # fully covered cell where the truth is empty: log(1 - 1) is clamped too
+    true = (torch.rand(3, 8, 8, generator=gen) > 0.4).to(DT)
+    true[1, 2, 2] = 0.5  # fractional coverage
+    true[2, 0, 0] = 0.0
+    valid = torch.ones(3, 8, 8, dtype=torch.bool)
+    valid[0, 7] = False
+    out = silhouette_bce_loss(soft, true, valid)
+    s, t, v = soft.numpy(), true.numpy(), valid.numpy()
+    for p in range(3):
+        with np.errstate(divide="ignore", invalid="ignore"):
+            per = -(t[p] * np.log(s[p]) + (1 - t[p]) * np.log(1 - s[p]))
+        clamped = ((s[p] == 0) & (t[p] > 0)) | ((s[p] == 1) & (t[p] < 1))
+        keep = v[p] & ~clamped
+        assert out.loss_reached[p].item() == pytest.approx(np.nan_to_num(per)[keep].mean(), rel=1e-9)
+        true_mass = (t[p] * v[p]).sum()
+        assert out.unreached[p].item() == pytest.approx((t[p] * v[p] * (s[p] == 0)).sum() / true_mass, rel=1e-9)
+    assert (out.loss > out.loss_reached).all()  # the clamp mass is in the plain l_xent only

@@ -26,6 +26,28 @@ def test_graph_conv_matches_dense_adjacency():
     assert torch.allclose(conv(x, unique_edges(faces)), expected, atol=1e-6)
 
 
+def test_graph_conv_inits_mesh_rcnn_small_weights_or_a_scale_keeping_kaiming():
+    """Three GraphConvs on a smooth vertex signal (positions and features that vary slowly over an
+    ico-sphere): Mesh R-CNN's N(0, 0.01²) shrinks the signal ~5x a layer, "kaiming" keeps it."""
+    torch.manual_seed(0)
+    verts, faces = ico_sphere(3)
+    edges = unique_edges(faces)
+    smooth = torch.cat([verts, torch.sin(3 * verts), torch.cos(2 * verts)], dim=-1).repeat(4, 1, 8)[..., :64]
+    scales = {}
+    for init in ("normal", "kaiming"):
+        x = smooth
+        for _ in range(3):
+            conv = GraphConv(x.shape[-1], 64, init)
+            x = torch.relu(conv(x, edges))
+        scales[init] = (x.pow(2).mean() / smooth.pow(2).mean()).sqrt().item()
+        assert torch.count_nonzero(conv.w0.bias) == 0 and torch.count_nonzero(conv.w1.bias) == 0
+    assert scales["normal"] < 0.05
+    assert 0.3 < scales["kaiming"] < 3.0
+    assert GraphConv(10, 4, "normal").w0.weight.std().item() == pytest.approx(0.01, rel=0.3)
+    with pytest.raises(ValueError, match="init must be one of"):
+        GraphConv(3, 3, "xavier")
+
+
 def test_layout_head_ranges_and_category_specific_outputs():
     torch.manual_seed(0)
     head = LayoutHead(8, 3, LayoutHeadConfig(fc_dim=16), RANGE)

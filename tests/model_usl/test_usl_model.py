@@ -6,6 +6,7 @@ import pytest
 import torch
 
 from usl.config import LayoutRange, load_config
+from usl.losses import PiecewiseLinear
 from usl.data import CategoryIndex, MultiViewDataset, SampleKey
 from usl.geometry.cameras import project, transform_points
 from usl.model.multiview_loss import multiview_silhouette_loss
@@ -45,12 +46,12 @@ def test_true_depth_beats_a_depth_error_only_other_views_can_see(setup):
         sample = dataset[SampleKey(index, 0)]
         verts, faces = _true_meshes(records, dataset, sample, index)
         counts = [len(verts)]
-        dist = {s: multiview_silhouette_loss(verts * s, faces, [sample], counts, cfg.loss)[1]["l_dist"] for s in (0.8, 1.0, 1.3)}
+        dist = {s: multiview_silhouette_loss(verts * s, faces, [sample], counts, cfg.loss).stats["l_dist"] for s in (0.8, 1.0, 1.3)}
         assert dist[1.0] < 0.5 * dist[1.3] and dist[1.0] < 0.5 * dist[0.8]
-        assert multiview_silhouette_loss(verts, faces, [sample], counts, cfg.loss)[1]["xent_gate"] > 0.6  # occlusion lowers some IoUs
+        assert multiview_silhouette_loss(verts, faces, [sample], counts, cfg.loss).stats["xent_gate"] > 0.6  # occlusion lowers some IoUs
         only_input = replace(sample, views=sample.views[:1])
-        a = multiview_silhouette_loss(verts, faces, [only_input], counts, cfg.loss)[0]
-        b = multiview_silhouette_loss(verts * 1.3, faces, [only_input], counts, cfg.loss)[0]
+        a = multiview_silhouette_loss(verts, faces, [only_input], counts, cfg.loss).l3d
+        b = multiview_silhouette_loss(verts * 1.3, faces, [only_input], counts, cfg.loss).l3d
         assert torch.isclose(a, b, rtol=0.05)  # the input view alone cannot see depth
 
 
@@ -60,8 +61,8 @@ def test_loss_is_a_per_image_mean_and_ignores_absent_objects(setup):
     meshes = [_true_meshes(records, dataset, s, i) for s, i in zip(samples, (1, 14))]
     faces = meshes[0][1]
     verts = [m[0] * 1.1 for m in meshes]
-    single = [multiview_silhouette_loss(v, faces, [s], [len(v)], cfg.loss)[0] for v, s in zip(verts, samples)]
-    batch, _ = multiview_silhouette_loss(torch.cat(verts), faces, samples, [len(v) for v in verts], cfg.loss)
+    single = [multiview_silhouette_loss(v, faces, [s], [len(v)], cfg.loss).l3d for v, s in zip(verts, samples)]
+    batch = multiview_silhouette_loss(torch.cat(verts), faces, samples, [len(v) for v in verts], cfg.loss).l3d
     assert torch.isclose(batch, 0.5 * (single[0] + single[1]), rtol=1e-5)
     # an object marked absent in a view contributes nothing there, whatever its mask says
     view = samples[0].views[1]
@@ -69,7 +70,7 @@ def test_loss_is_a_per_image_mean_and_ignores_absent_objects(setup):
     garbage = replace(absent, masks=torch.ones_like(view.masks))
     garbage.masks[1] = view.masks[1]
     losses = [
-        multiview_silhouette_loss(verts[0], faces, [replace(samples[0], views=[samples[0].views[0], v])], [2], cfg.loss)[0]
+        multiview_silhouette_loss(verts[0], faces, [replace(samples[0], views=[samples[0].views[0], v])], [2], cfg.loss).l3d
         for v in (absent, garbage)
     ]
     assert torch.isclose(losses[0], losses[1])
@@ -128,3 +129,71 @@ def test_predict_casts_meshes_into_the_object_frustum(setup):
         assert torch.all((pred.scores >= 0) & (pred.scores <= 1))
     with pytest.raises(ValueError, match="mode"):
         model.predict(frames, mode="oracle")
+
+
+def test_dist_schedule_scales_exactly_the_l_dist_part(setup):
+    cfg, records, dataset = setup
+    sample = dataset[SampleKey(0, 0)]
+    verts, faces = _true_meshes(records, dataset, sample, 0)
+    verts = verts * 1.2  # a depth error, so l_dist is not ~0
+    plain = multiview_silhouette_loss(verts, faces, [sample], [len(verts)], cfg.loss)
+    scheduled_cfg = replace(cfg.loss, dist_schedule=PiecewiseLinear(iters=(0, 100), values=(1.0, 0.25)))
+    for iteration, factor in ((0, 1.0), (50, 0.625), (400, 0.25)):
+        out = multiview_silhouette_loss(verts, faces, [sample], [len(verts)], scheduled_cfg, iteration)
+        torch.testing.assert_close(out.dist, factor * plain.dist)
+        torch.testing.assert_close(out.xent, plain.xent)
+        torch.testing.assert_close(out.l3d, out.dist + out.xent)
+        assert out.stats["dist_factor"].item() == pytest.approx(factor * cfg.loss.dist_scale)
+
+
+def test_gate_input_view_false_applies_l_xent_in_the_input_view_only(setup):
+    cfg, records, dataset = setup
+    sample = dataset[SampleKey(0, 0)]
+    verts, faces = _true_meshes(records, dataset, sample, 0)
+    centre = verts.mean(dim=1, keepdim=True)
+    shrunk = centre + 0.4 * (verts - centre)  # input-view IoU ~0.16: the paper's gate keeps it out
+    only_input = replace(sample, views=sample.views[:1])
+    ungated = replace(cfg.loss, gate_input_view=False)
+    counts = [len(verts)]
+    assert multiview_silhouette_loss(shrunk, faces, [only_input], counts, cfg.loss).xent.item() == 0.0
+    opened = multiview_silhouette_loss(shrunk, faces, [only_input], counts, ungated)
+    assert opened.xent.item() > 0 and opened.stats["xent_gate"].item() == 1.0
+    # the other views keep the gate: their pairs' gate fraction is the same either way
+    full = [multiview_silhouette_loss(shrunk, faces, [sample], counts, c).stats["xent_gate"] for c in (cfg.loss, ungated)]
+    input_share = counts[0] / sum(int(v.present.sum()) for v in sample.views)
+    assert full[1].item() == pytest.approx(full[0].item() + input_share)
+
+
+def test_ignore_occluders_scores_true_meshes_as_perfect_despite_occlusion(setup):
+    """True masks show visible parts only, so a true (amodal) mesh seems wrong wherever another
+    object hides it; with ``ignore_occluders`` those cells are unobserved and every pair passes the gate."""
+    cfg, records, dataset = setup
+    for index in (0, 9):
+        sample = dataset[SampleKey(index, 0)]
+        verts, faces = _true_meshes(records, dataset, sample, index)
+        plain = multiview_silhouette_loss(verts, faces, [sample], [len(verts)], cfg.loss)
+        aware = multiview_silhouette_loss(verts, faces, [sample], [len(verts)], replace(cfg.loss, ignore_occluders=True))
+        assert aware.stats["xent_gate"].item() == 1.0
+        assert aware.stats["l_xent"] < plain.stats["l_xent"]
+        torch.testing.assert_close(aware.dist, plain.dist)  # l_dist is unchanged
+
+
+def test_gradient_diagnostics_observe_without_changing_the_step(setup):
+    cfg, _, dataset = setup
+    samples = [dataset[SampleKey(i, 0)] for i in (0, 3)]
+    grads = []
+    for diagnostics in (False, True):
+        torch.manual_seed(0)
+        model = USLModel(cfg.model, replace(cfg.loss, gate_input_view=False))
+        losses = model(samples, diagnostics=diagnostics)
+        losses["loss"].backward()
+        grads.append([p.grad.clone() for p in model.shape_head.parameters() if p.grad is not None])
+        if diagnostics:
+            assert losses["stat/grad_dist"] > 0 and losses["stat/grad_xent"] > 0
+            torch.testing.assert_close(losses["stat/grad_ratio"], losses["stat/grad_dist"] / losses["stat/grad_xent"])
+        else:
+            assert "stat/grad_dist" not in losses
+    assert all(torch.equal(a, b) for a, b in zip(*grads))
+    torch.manual_seed(0)
+    no_dist = USLModel(cfg.model, replace(cfg.loss, dist_schedule=PiecewiseLinear(iters=(0,), values=(0.0,))))
+    assert no_dist(samples, diagnostics=True)["stat/grad_dist"].item() == 0.0

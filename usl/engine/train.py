@@ -151,7 +151,7 @@ class Trainer:
                 self.sampler.set_epoch(self.epoch, self.batch_in_epoch)
                 for batch in self.loader:
                     data_time = time.perf_counter() - last
-                    values = self.step(batch)
+                    values = self.step(batch, diagnostics=(self.iteration + 1) % cfg.train.log_every == 0)
                     if values["skipped"]:
                         tqdm.write(f"{COMMAND}: non-finite loss or gradient at iteration {self.iteration + 1}; step skipped")
                     self.iteration += 1

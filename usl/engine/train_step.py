@@ -53,12 +53,14 @@ class TrainStep:
         self.scaler.load_state_dict(state["scaler"])
         self.skipped = int(state.get("skipped_steps", 0))
 
-    def __call__(self, batch: list[MultiViewSample]) -> dict[str, float]:
-        """Forward, backward, clip, guard, step; returns the losses and ``grad_norm``, ``skipped``."""
+    def __call__(self, batch: list[MultiViewSample], diagnostics: bool = False) -> dict[str, float]:
+        """Forward, backward, clip, guard, step; returns the losses and ``grad_norm``, ``skipped``
+        (and the model's gradient diagnostics when asked: see ``USLModel.forward``)."""
         device = self.info.device
         batch = [sample.to(device) for sample in batch]
+        iteration = self.scheduler.last_epoch  # optimizer steps taken so far, resumed exactly
         with torch.autocast(device.type, dtype=self.amp_dtype or torch.bfloat16, enabled=self.amp_dtype is not None):
-            losses = self.net(batch)
+            losses = self.net(batch, iteration=iteration, diagnostics=diagnostics)
         loss = losses["loss"]
         self.scaler.scale(loss).backward()
         self.scaler.unscale_(self.optimizer)

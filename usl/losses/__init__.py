@@ -7,10 +7,12 @@ from usl.losses.silhouette import (
     silhouette_bce_loss,
     silhouette_chamfer_loss,
 )
+from usl.losses.schedule import PiecewiseLinear
 from usl.losses.total import LossWeights, combine_losses
 
 __all__ = [
     "LossWeights",
+    "PiecewiseLinear",
     "SilhouetteBCE",
     "combine_losses",
     "l2d_loss",

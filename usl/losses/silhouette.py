@@ -127,6 +127,12 @@ class SilhouetteBCE(NamedTuple):
     loss: Tensor  # (P,) mean per-pixel binary cross-entropy, NOT gated
     gate: Tensor  # (P,) bool, IoU(soft > 0.5, true) > iou_threshold
     iou: Tensor  # (P,) that IoU (0 where both masks are empty)
+    # Diagnostics (no gradient). BCE clamps log(0) at -100, so a true pixel that no face reaches
+    # (soft exactly 0) costs a constant 100 with zero gradient; a handful of them dominate the
+    # mean. ``loss_reached`` is the mean over the other cells, ``unreached`` the fraction of
+    # true-foreground cells no face reaches.
+    loss_reached: Tensor  # (P,)
+    unreached: Tensor  # (P,)
 
 
 def silhouette_bce_loss(
@@ -155,7 +161,12 @@ def silhouette_bce_loss(
         inter = (pred_fg & true_fg).sum(dim=1)
         union = (pred_fg | true_fg).sum(dim=1)
         iou = torch.where(union > 0, inter / union.clamp(min=1), 0.0).to(soft.dtype)
-    return SilhouetteBCE(loss, iou > iou_threshold, iou)
+        clamped = ((soft == 0) & (target > 0)) | ((soft == 1) & (target < 1))
+        kept = weight * (~clamped).flatten(1)
+        loss_reached = (per_cell.flatten(1) * kept).sum(1) / kept.sum(1).clamp(min=1)
+        true_cells = target.flatten(1) * weight
+        unreached = (true_cells * (soft == 0).flatten(1)).sum(1) / true_cells.sum(1).clamp(min=1e-6)
+    return SilhouetteBCE(loss, iou > iou_threshold, iou, loss_reached, unreached)
 
 
 def l2d_loss(dist: Tensor, xent: SilhouetteBCE) -> Tensor:

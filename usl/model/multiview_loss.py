@@ -18,6 +18,7 @@ silhouettes with sigma ~ 1e-4 are not safe in half precision.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import torch
 
@@ -51,18 +52,36 @@ class _Pairs:
     K: list[Tensor]  # (n, 3, 3)
     sizes: list[Tensor]  # (n, 2) (H, W)
     weight: list[Tensor]  # (n,) 1 / (pairs of the sample's image) / batch size
+    is_input: list[Tensor]  # (n,) bool, the pair's view is the input view
+    occluders: list[Tensor]  # n masks (H_j, W_j): other objects' pixels (loss.ignore_occluders)
+
+
+class SilhouetteLoss(NamedTuple):
+    """L_3D = dist + xent, its two weighted parts (kept apart for gradient diagnostics), and
+    detached statistics: mean l_dist, mean l_xent, l_xent without BCE's clamp mass
+    (``l_xent_reached``), the fraction of true pixels no face reaches (``unreached``), the
+    fraction of pairs the IoU gate lets into l_xent (``xent_gate``) and l_dist's current factor."""
+
+    l3d: Tensor
+    dist: Tensor
+    xent: Tensor
+    stats: dict[str, Tensor]
 
 
 def multiview_silhouette_loss(
-    verts_cam: Tensor, faces: Tensor, samples: list[MultiViewSample], counts: list[int], cfg: LossConfig
-) -> tuple[Tensor, dict[str, Tensor]]:
+    verts_cam: Tensor,
+    faces: Tensor,
+    samples: list[MultiViewSample],
+    counts: list[int],
+    cfg: LossConfig,
+    iteration: int = 0,
+) -> SilhouetteLoss:
     """L_3D for a batch. ``verts_cam`` (N, V, 3) are all objects' meshes in their input camera's
     frame, sample by sample (``counts[i]`` objects for sample i, in ``object_rows`` order).
-
-    Returns L_3D and detached statistics (mean l_dist, mean l_xent, fraction of pairs gated in).
+    ``iteration`` sets l_dist's factor ``cfg.dist_scale * cfg.dist_schedule(iteration)``.
     """
     verts_cam = verts_cam.float()
-    pairs = _Pairs([], [], [], [], [], [], [], [])
+    pairs = _Pairs([], [], [], [], [], [], [], [], [], [])
     starts = torch.tensor([0] + counts).cumsum(0).tolist()
     for index, sample in enumerate(samples):
         verts = verts_cam[starts[index] : starts[index + 1]]
@@ -70,7 +89,7 @@ def multiview_silhouette_loss(
             _gather_pairs(verts, faces, sample, cfg, len(samples), pairs)
     if not pairs.verts:
         zero = verts_cam.sum() * 0.0
-        return zero, {"l_dist": zero.detach(), "l_xent": zero.detach(), "xent_gate": zero.detach()}
+        return SilhouetteLoss(zero, zero, zero, {})
     verts, K = torch.cat(pairs.verts), torch.cat(pairs.K)
     true_lengths = torch.cat(pairs.true_lengths)
     dist = silhouette_chamfer_loss(
@@ -81,17 +100,25 @@ def multiview_silhouette_loss(
     face_window = torch.arange(num_pairs, device=faces.device).repeat_interleave(faces.shape[0])
     render = cfg.render
     rendered = render_dynamic(
-        verts.reshape(-1, 3), faces_packed, face_window, K, pairs.masks, render.resolution, render.settings(), render.padding
+        verts.reshape(-1, 3), faces_packed, face_window, K, pairs.masks, render.resolution, render.settings(),
+        render.padding, ignore_masks=pairs.occluders if cfg.ignore_occluders else None,
     )
     xent = silhouette_bce_loss(rendered.soft, rendered.target, rendered.valid, cfg.iou_threshold)
+    if not cfg.gate_input_view:
+        xent = xent._replace(gate=xent.gate | torch.cat(pairs.is_input))
     weight = torch.cat(pairs.weight)
-    l3d = (l2d_loss(cfg.dist_scale * dist, xent) * weight).sum()
+    dist_factor = cfg.dist_scale * cfg.dist_schedule(iteration)
+    dist_part = (dist_factor * dist * weight).sum()
+    xent_part = (l2d_loss(torch.zeros_like(dist), xent) * weight).sum()
     stats = {
         "l_dist": dist.detach().mean(),
         "l_xent": xent.loss.detach().mean(),
+        "l_xent_reached": xent.loss_reached.mean(),
+        "unreached": xent.unreached.mean(),
         "xent_gate": xent.gate.float().mean(),
+        "dist_factor": torch.tensor(dist_factor),
     }
-    return l3d, stats
+    return SilhouetteLoss(dist_part + xent_part, dist_part, xent_part, stats)
 
 
 def _gather_pairs(
@@ -101,7 +128,7 @@ def _gather_pairs(
     surface = sample_points_from_meshes(Meshes.from_shared_topology(verts, faces), cfg.mesh_points, generator)
     input_pose = sample.views[0].cam_to_world
     num_pairs = sum(int(view.present.sum()) for view in sample.views)
-    for view in sample.views:
+    for position, view in enumerate(sample.views):
         present = torch.nonzero(view.present).squeeze(1)
         if len(present) == 0:
             continue
@@ -116,6 +143,9 @@ def _gather_pairs(
         pairs.K.append(view.K.float().expand(len(present), 3, 3))
         pairs.sizes.append(torch.tensor(view.size, device=verts.device).expand(len(present), 2))
         pairs.weight.append(torch.full((len(present),), 1.0 / (num_pairs * batch_size), device=verts.device))
+        pairs.is_input.append(torch.full((len(present),), position == 0, device=verts.device))
+        if cfg.ignore_occluders:
+            pairs.occluders.extend((view.masks.any(dim=0) & ~masks).unbind(0))
 
 
 def shape_regularizers(

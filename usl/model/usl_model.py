@@ -107,9 +107,14 @@ class USLModel(nn.Module):
         return ObjectOutputs(layout, shape, verts_cam, counts)
 
     # ------------------------------------------------------------------ training
-    def forward(self, samples: list[MultiViewSample]) -> dict[str, Tensor]:
+    def forward(self, samples: list[MultiViewSample], iteration: int = 0, diagnostics: bool = False) -> dict[str, Tensor]:
         """Weighted losses (``det/*``, ``l3d``, ``edge``, ``offset_l2``, ``laplacian``), their sum
-        ``loss``, and detached statistics under ``stat/*``."""
+        ``loss``, and detached statistics under ``stat/*``.
+
+        ``iteration`` drives the loss schedules (``loss.dist_schedule``). ``diagnostics`` adds the
+        gradient norms of l_dist's and the gated l_xent's parts at the shape head's output
+        (``stat/grad_dist``, ``stat/grad_xent``): two extra backward passes through the loss,
+        none through the network, so the trainer asks for them on logging steps only."""
         frames = [s.frame for s in samples]
         image_list, features = self._backbone(frames)
         weights = self.loss_cfg.weights
@@ -127,11 +132,18 @@ class USLModel(nn.Module):
             [s.frame.K for s in samples],
         )
         with _autocast_off(outputs.verts_cam):
-            l3d, stats = multiview_silhouette_loss(outputs.verts_cam, self.faces, samples, outputs.counts, self.loss_cfg)
+            silhouette = multiview_silhouette_loss(
+                outputs.verts_cam, self.faces, samples, outputs.counts, self.loss_cfg, iteration
+            )
+            stats = dict(silhouette.stats)
+            if diagnostics:
+                stats.update(_gradient_norms(outputs.shape.verts, {"dist": silhouette.dist, "xent": silhouette.xent}))
+                if stats["grad_xent"] > 0:  # no ratio while the gate keeps every pair out of l_xent
+                    stats["grad_ratio"] = stats["grad_dist"] / stats["grad_xent"]
             need = {name: bool(getattr(weights, name) * weights.mu_reg) for name in ("edge", "offset_l2", "laplacian")}
             regs = shape_regularizers(outputs.shape.verts, outputs.shape.offsets, self.faces, outputs.counts, need)
             # Keep both heads in the graph even for a batch without objects (DDP needs every gradient).
-            l3d = l3d + 0.0 * (outputs.layout.z.sum() + outputs.layout.rho.sum() + outputs.shape.verts.sum())
+            l3d = silhouette.l3d + 0.0 * (outputs.layout.z.sum() + outputs.layout.rho.sum() + outputs.shape.verts.sum())
             total, parts = combine_losses(weights, l3d, detection, **regs)
         parts["loss"] = total
         parts.update({f"stat/{k}": v for k, v in stats.items()})
@@ -185,6 +197,18 @@ def _split_predictions(
         )
         for b, l, s, zi, ri, v, i in zip(boxes, labels, scores, z, rho, verts, ids)
     ]
+
+
+def _gradient_norms(at: Tensor, terms: dict[str, Tensor]) -> dict[str, Tensor]:
+    """``grad_<name>``: norm of each term's gradient w.r.t. ``at`` (the graph is kept)."""
+    norms = {}
+    for name, term in terms.items():
+        if not term.requires_grad:
+            norms[f"grad_{name}"] = torch.zeros((), device=at.device)
+            continue
+        (grad,) = torch.autograd.grad(term, at, retain_graph=True, allow_unused=True)
+        norms[f"grad_{name}"] = torch.zeros((), device=at.device) if grad is None else grad.detach().norm()
+    return norms
 
 
 def _autocast_off(like: Tensor):

@@ -58,6 +58,7 @@ def render_dynamic(
     padding: float = 0.05,
     min_size: float = 4.0,
     true_boxes: Tensor | None = None,
+    ignore_masks: Sequence[Tensor] | None = None,
 ) -> DynamicRender:
     """Soft silhouettes and matching true-mask crops for P (object, view) pairs.
 
@@ -75,6 +76,8 @@ def render_dynamic(
         min_size: smallest window side in image pixels.
         true_boxes: (P, 4) boxes of the true masks (e.g. the records' ``bbox``), to skip
             computing them from the masks; they must contain the masks' True pixels.
+        ignore_masks: optional P (H_p, W_p) bool masks of unobserved pixels (e.g. where another
+            object is in the way): cells covered more than half by them are not ``valid``.
     """
     check_packed_inputs(verts, faces, face_window, K, "render_dynamic")
     num_pairs = K.shape[0]
@@ -89,10 +92,16 @@ def render_dynamic(
     K_window = window_intrinsics(windows, resolution).to(K.dtype) @ K
     soft = rasterize_soft(verts, faces, face_window, K_window, resolution, resolution, settings)
     target = torch.stack([resample_mask_area(m, w.tolist(), resolution) for m, w in zip(true_masks, windows)])
+    valid = _cells_inside_image(windows, image_sizes, resolution)
+    if ignore_masks is not None:
+        if len(ignore_masks) != num_pairs:
+            raise ValueError(f"render_dynamic: K has {num_pairs} pairs but ignore_masks has {len(ignore_masks)}")
+        hidden = torch.stack([resample_mask_area(m, w.tolist(), resolution) for m, w in zip(ignore_masks, windows)])
+        valid = valid & (hidden <= 0.5).to(valid.device)
     return DynamicRender(
         soft=soft,
         target=target.to(device=soft.device, dtype=soft.dtype),
-        valid=_cells_inside_image(windows, image_sizes, resolution),
+        valid=valid,
         windows=windows.to(K.dtype),
         K_window=K_window,
     )

@@ -35,10 +35,12 @@ class ShapePrediction:
 class RefinementStage(nn.Module):
     """One {vertex features, GraphConvs, offsets} stage."""
 
-    def __init__(self, feature_dim: int, hidden_dim: int, num_graph_convs: int):
+    def __init__(self, feature_dim: int, hidden_dim: int, num_graph_convs: int, graph_conv_init: str = "normal"):
         super().__init__()
         self.bottleneck = nn.Linear(feature_dim, hidden_dim)
-        self.gconvs = nn.ModuleList(GraphConv(hidden_dim + 3, hidden_dim) for _ in range(num_graph_convs))
+        self.gconvs = nn.ModuleList(
+            GraphConv(hidden_dim + 3, hidden_dim, graph_conv_init) for _ in range(num_graph_convs)
+        )
         self.offset = nn.Linear(hidden_dim + 3, 3)
         nn.init.zeros_(self.offset.weight)  # start from the sphere (Mesh R-CNN's init)
         nn.init.zeros_(self.offset.bias)
@@ -67,7 +69,8 @@ class ShapeHead(nn.Module):
             else None
         )
         self.stages = nn.ModuleList(
-            RefinementStage(feature_channels, cfg.hidden_dim, cfg.num_graph_convs) for _ in range(cfg.num_stages)
+            RefinementStage(feature_channels, cfg.hidden_dim, cfg.num_graph_convs, cfg.graph_conv_init)
+            for _ in range(cfg.num_stages)
         )
 
     def forward(self, features: Mapping[str, Tensor], boxes: list[Tensor]) -> ShapePrediction:

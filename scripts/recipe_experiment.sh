@@ -1,0 +1,42 @@
+#!/usr/bin/env bash
+# One learning-quality experiment: train a recipe on the main job's Scene-Shapes build and score it
+# on a build with another --seed (shape models and scenes the model never saw), next to the sphere
+# baselines. The experiments behind the `tiny` recipe (issue F) are runs of this script.
+#
+#   bash scripts/recipe_experiment.sh NAME [key=value ...]      # overrides go to usl-train
+#   USL_EXP_CONFIG=scene_shapes bash scripts/recipe_experiment.sh r50 optim.max_iter=2000
+#
+# Environment: USL_EXP_DIR (default runs/experiments), USL_EXP_CONFIG (default tiny),
+# USL_EXP_TRAIN_SCENES (scenes and models of the training build, default 60 as the main job),
+# USL_EXP_EVAL_VIEWS (input views scored per held-out scene, default every:4, i.e. 96 views).
+# Writes $USL_EXP_DIR/NAME/{train,eval}; prints the held-out table and the training CPU time.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+export PYOPENGL_PLATFORM=${PYOPENGL_PLATFORM:-egl}
+# this checkout's code (python -m, not the console scripts), whatever pip last installed
+export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}"
+NAME=${1:?usage: recipe_experiment.sh NAME [key=value ...]}; shift
+ROOT=${USL_EXP_DIR:-runs/experiments}
+DATA=$ROOT/data
+RUN=$ROOT/$NAME
+
+# a training build like the main job's (seed 0; USL_EXP_TRAIN_SCENES scenes and as many models),
+# and the main job's held-out build (seed 1, 60 scenes): other shape models, other scenes
+SCENES=${USL_EXP_TRAIN_SCENES:-60}
+TRAIN=$DATA/train_seed0_$SCENES
+build() {
+  python3 -m pipelines.scene_shapes.cli --out "$1" --seed "$2" --num-scenes "$3" --num-models "$3" --resolution 128 --views 8 \
+    --heights 2 --workers "$(nproc)" --quiet
+}
+build "$TRAIN" 0 "$SCENES"
+build "$DATA/heldout_seed1" 1 60
+
+rm -rf "$RUN" && mkdir -p "$RUN"
+# CPU time is the figure to compare on a shared machine; the progress bar goes to train.log
+/usr/bin/time -o "$RUN/train_time.txt" -f "training: %e s wall, %U s user CPU" \
+  python3 -m usl.engine.train --config "${USL_EXP_CONFIG:-tiny}" --output-dir "$RUN/train" data.root="$TRAIN" "$@" \
+  > "$RUN/train.log" 2>&1 || { tail -5 "$RUN/train.log"; exit 1; }
+cat "$RUN/train_time.txt"
+# every split of the seed-1 build is unseen; its train split is the largest
+python3 -m usl.engine.evaluate "$DATA/heldout_seed1" --split train --input-views "${USL_EXP_EVAL_VIEWS:-every:4}" --checkpoint "$RUN/train" \
+  --rows random,fixed,model --out "$RUN/eval" --pictures 4 --quiet | grep '^|'
