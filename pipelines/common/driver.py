@@ -21,7 +21,7 @@ from tqdm import tqdm
 
 from usl.records.encode import SceneRecord
 from usl.records.errors import UslError
-from usl.records.manifest import build_manifest, dataset_metadata, write_json_atomic
+from usl.records.manifest import build_manifest, dataset_metadata, publish_dataset
 from usl.records.shards import ShardWriter, remove_stale_temp_files
 
 from .build_state import BuildState
@@ -179,7 +179,7 @@ def run_build(
     finished = list(results.values())
     summary.skipped = sum(s["count"] for r in finished for s in r["skips"])
     if not summary.pending_shards:
-        write_json_atomic(state.manifest_path(), build_manifest(spec, finished, creator, state.fingerprint))
+        publish_dataset(options.out, build_manifest(spec, finished, creator, state.fingerprint))
         summary.manifest_written = True
     summary.seconds = time.perf_counter() - start
     return summary

@@ -45,7 +45,7 @@ def test_filters_stride_and_stuff_exclusion(inputs, tmp_path):
     assert [(r["scene_id"], r["view_id"]) for r in rows] == [("ai_001_001/cam_00", 0), ("ai_001_001/cam_00", 4)]
     categories = {i["category_id"] for r in rows for i in r["instances"]}
     assert categories and not categories & {1, 2, 22}
-    assert rows[0]["image"][:2] == b"\xff\xd8"  # JPEG by default
+    assert rows[0]["image"]["bytes"][:2] == b"\xff\xd8"  # JPEG by default
     assert decode_image(rows[0]["image"]).shape == (36, 48, 3)
     only_val = convert(inputs, tmp_path / "val", "--splits", "val", "--cameras", "cam_00")
     assert RecordsDataset(only_val, "val").scene_ids == ["ai_002_001/cam_00"]

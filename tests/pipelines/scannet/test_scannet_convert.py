@@ -109,7 +109,7 @@ def test_native_size_keeps_the_stored_jpeg_and_labels_give_ground_truth_tracks(s
     rows = RecordsDataset(out, "train").read_scene(SENS_SCENE)
     for row in rows[::20]:
         frame = synthetic.frames[row["view_id"]]
-        assert row["image"] == frame.color and (row["height"], row["width"]) == (72, 96)
+        assert row["image"]["bytes"] == frame.color and (row["height"], row["width"]) == (72, 96)
         for inst in row["instances"]:  # ScanNet's instance ids become the instance ids
             np.testing.assert_array_equal(decode_mask(inst["mask"]), frame.instances == inst["instance_id"])
     assert sorted(track_frames(RecordsDataset(out, "train"), SENS_SCENE)) == [1, 2, 3]
