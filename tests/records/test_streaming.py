@@ -95,7 +95,7 @@ def test_rows_out_of_order_are_refused_by_the_sink_and_the_writer(tmp_path):
         with pytest.raises(ValueError, match=r"ascending view_id \(1 after 2\)"):
             with ShardWriter(tmp_path / "ds", "train", 0, dataset_metadata(SPEC)) as writer:
                 writer.add_scene(record)
-        assert not list((tmp_path / "ds" / "train").iterdir()), "a failed shard leaves no file"
+        assert not list((tmp_path / "ds" / "frames" / "train").iterdir()), "a failed shard leaves no file"
 
 
 KILLER = """
