@@ -21,7 +21,7 @@ from tqdm import tqdm
 
 from usl.records.encode import SceneRecord
 from usl.records.errors import UslError
-from usl.records.manifest import build_manifest, dataset_metadata, publish_dataset
+from usl.records.manifest import build_manifest, dataset_metadata, publish_dataset, usl_version
 from usl.records.shards import ShardWriter, remove_stale_temp_files
 
 from .build_state import BuildState
@@ -101,17 +101,11 @@ def fingerprint_from_args(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def creator_from_args(command: str, args: argparse.Namespace) -> dict[str, Any]:
-    from importlib.metadata import PackageNotFoundError, version
-
-    try:
-        usl_version = version("usl")
-    except PackageNotFoundError:
-        usl_version = "unknown"
     return {
         "command": command,
         "argv": sys.argv[1:],
         "arguments": {k: _jsonable(v) for k, v in sorted(vars(args).items())},
-        "usl_version": usl_version,
+        "usl_version": usl_version(),
     }
 
 

@@ -13,6 +13,16 @@ from .schema import SCHEMA_VERSION, check_version
 MANIFEST = "manifest.json"
 
 
+def usl_version() -> str:
+    """The installed usl's version, for provenance records ("unknown" when run from a source tree)."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("usl")
+    except PackageNotFoundError:
+        return "unknown"
+
+
 def dataset_metadata(spec: dict[str, Any]) -> dict[str, Any]:
     """The dataset-level facts stored both in the manifest and in every shard's Arrow schema."""
     return {
