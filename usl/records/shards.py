@@ -26,7 +26,7 @@ import pyarrow.parquet as pq
 
 from .encode import SceneRecord, Skip
 from .errors import UslError
-from .schema import dataset_schema, shard_file, table_schema
+from .schema import dataset_schema, required_fields, shard_file, table_schema
 
 # Small row groups keep "read one scene" cheap; a long video scene spans several groups.
 MAX_ROWS_PER_GROUP = 64
@@ -66,9 +66,14 @@ def objects_table(rows: list[dict[str, Any]], schema: pa.Schema) -> pa.Table:
 
 def frames_table(rows: list[dict[str, Any]], schema: pa.Schema) -> pa.Table:
     try:
-        return pa.Table.from_pylist(rows, schema=schema)
+        table = pa.Table.from_pylist(rows, schema=schema)
     except (pa.ArrowInvalid, pa.ArrowTypeError, KeyError) as exc:
         raise ValueError(f"frame rows do not match the frames record schema: {exc}") from exc
+    # Arrow fields are all nullable (schema.table_schema), so a missing required value is caught here.
+    missing = [name for name in required_fields("frames") if table.column(name).null_count]
+    if missing:
+        raise ValueError(f"frame rows lack required field(s) {', '.join(missing)}")
+    return table
 
 
 @dataclass
