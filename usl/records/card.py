@@ -66,7 +66,7 @@ def dataset_card(manifest: dict[str, Any]) -> str:
         "---", yaml.safe_dump(front, sort_keys=False).rstrip(), "---", MARKER, "",
         f"# {manifest['name']}",
         "",
-        f"Multi-view records for [usl](https://github.com/usl-toolkit/usl), schema version {SCHEMA_VERSION}: "
+        f"Multi-view records made with usl (record schema version {SCHEMA_VERSION}): "
         "one row per view with its image, camera and instance masks (COCO RLE), and, where the dataset "
         "has them, the 3D ground-truth objects. Conventions: metres, OpenCV camera axes, pixel centres at +0.5.",
         "",

@@ -41,6 +41,7 @@ def test_filters_stride_and_stuff_exclusion(inputs, tmp_path):
     out = convert(inputs, tmp_path / "records", "--blacklist", "ai_002_001", "--frame-stride", "2",
                   "--exclude-categories", "stuff", "--resolution", "48x36")
     assert validate_dataset(out) == []
+    assert load_manifest(out)["schema_version"] == 2 and (out / "frames" / "train").is_dir()
     (rows,) = all_rows(out).values()
     assert [(r["scene_id"], r["view_id"]) for r in rows] == [("ai_001_001/cam_00", 0), ("ai_001_001/cam_00", 4)]
     categories = {i["category_id"] for r in rows for i in r["instances"]}

@@ -56,6 +56,7 @@ def track_frames(dataset: RecordsDataset, scene_id: str) -> dict[int, list[int]]
 def test_records_are_valid_and_complete(converted, synthetic):
     assert validate_dataset(converted) == []
     manifest = load_manifest(converted)
+    assert manifest["schema_version"] == 2 and (converted / "frames" / "train").is_dir() and (converted / "README.md").exists()
     assert set(manifest["splits"]) == {"train", "val"}
     assert skips_of(converted) == {SKIP_POSE: 2 * len(synthetic.lost)}
     train = RecordsDataset(converted, "train")
