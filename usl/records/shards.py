@@ -32,6 +32,9 @@ from .schema import dataset_schema, required_fields, shard_file, table_schema
 MAX_ROWS_PER_GROUP = 64
 MAX_SCENES_PER_GROUP = 4
 PAYLOAD_COLUMNS = ("image.bytes", "depth")  # encoded images: already compressed, stored PLAIN
+# Instances (RLE strings, ids, boxes) are left uncompressed: ZSTD shrinks a frames shard by only
+# ~3% but costs ~20% more CPU per random read (measured on Scene-Shapes, 256 px).
+UNCOMPRESSED_FIELDS = ("instances",)
 TMP_SUFFIX = ".tmp"
 
 
@@ -110,8 +113,9 @@ class _TableStream:
         self.writer = pq.ParquetWriter(
             self.tmp,
             schema,
-            compression={p: ("NONE" if p in payload else "ZSTD") for paths in leaves.values() for p in paths},
-            use_dictionary=[p for n, paths in leaves.items() if n != "instances" for p in paths if p not in payload],
+            compression={p: ("NONE" if p in payload or n in UNCOMPRESSED_FIELDS else "ZSTD")
+                         for n, paths in leaves.items() for p in paths},
+            use_dictionary=[p for n, paths in leaves.items() if n not in UNCOMPRESSED_FIELDS for p in paths if p not in payload],
             column_encoding={p: "PLAIN" for p in payload} or None,
             write_statistics=["scene_id", "view_id"] if "view_id" in leaves else ["scene_id"],
         )
