@@ -113,3 +113,20 @@ def test_split_build_across_machines_then_finalise(tmp_path):
                             make_plans(), build_fake_scene, {})
     assert summary.manifest_written and summary.kept_shards == 2 and summary.built_shards == 2
     assert len(RecordsDataset(out, "train")) == 10
+
+
+def test_finished_shard_in_an_older_layout_is_rebuilt_not_mixed_in(tmp_path):
+    """A build begun by usl 0.1 (v1 layout) and resumed now: its finished shards are redone in v2."""
+    out = tmp_path / "ds"
+    plans = make_plans(num_scenes=4, per_shard=2)
+    build(out, plans=plans)
+    marker = out / ".build" / "train-00000.json"
+    result = json.loads(marker.read_text())
+    (out / "train").mkdir()
+    (out / "frames" / "train" / "frames-00000.parquet").rename(out / "train" / "frames-00000.parquet")
+    result["frames"]["file"] = "train/frames-00000.parquet"
+    marker.write_text(json.dumps(result))
+    summary = build(out, plans=plans)
+    assert (summary.kept_shards, summary.built_shards) == (1, 1)
+    assert json.loads((out / "manifest.json").read_text())["splits"]["train"]["shards"][0]["frames"]["file"] == (
+        "frames/train/frames-00000.parquet")
