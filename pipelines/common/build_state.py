@@ -15,7 +15,8 @@ from pathlib import Path
 from typing import Any
 
 from usl.records.errors import UslError
-from usl.records.manifest import MANIFEST, write_json_atomic
+from usl.records.manifest import write_json_atomic
+from usl.records.schema import shard_file
 from usl.records.shards import ShardResult, verify_file
 
 STATE_DIR = ".build"
@@ -68,7 +69,9 @@ class BuildState:
             return None
         result = json.loads(marker.read_text())
         files = [result["frames"]] + ([result["objects"]] if result["objects"] else [])
-        if any(verify_file(self.root, info) for info in files):
+        # A shard of an older schema's layout (a build begun by an older usl) is rebuilt, not mixed in.
+        stale_layout = result["frames"]["file"] != shard_file("frames", split, index)
+        if stale_layout or any(verify_file(self.root, info) for info in files):
             marker.unlink()
             return None
         return result
@@ -77,6 +80,3 @@ class BuildState:
         data = asdict(result)
         write_json_atomic(self._marker(result.split, result.index), data)
         return data
-
-    def manifest_path(self) -> Path:
-        return self.root / MANIFEST

@@ -21,7 +21,7 @@ from tqdm import tqdm
 
 from usl.records.encode import SceneRecord
 from usl.records.errors import UslError
-from usl.records.manifest import build_manifest, dataset_metadata, write_json_atomic
+from usl.records.manifest import build_manifest, dataset_metadata, publish_dataset, usl_version
 from usl.records.shards import ShardWriter, remove_stale_temp_files
 
 from .build_state import BuildState
@@ -101,17 +101,11 @@ def fingerprint_from_args(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def creator_from_args(command: str, args: argparse.Namespace) -> dict[str, Any]:
-    from importlib.metadata import PackageNotFoundError, version
-
-    try:
-        usl_version = version("usl")
-    except PackageNotFoundError:
-        usl_version = "unknown"
     return {
         "command": command,
         "argv": sys.argv[1:],
         "arguments": {k: _jsonable(v) for k, v in sorted(vars(args).items())},
-        "usl_version": usl_version,
+        "usl_version": usl_version(),
     }
 
 
@@ -179,7 +173,7 @@ def run_build(
     finished = list(results.values())
     summary.skipped = sum(s["count"] for r in finished for s in r["skips"])
     if not summary.pending_shards:
-        write_json_atomic(state.manifest_path(), build_manifest(spec, finished, creator, state.fingerprint))
+        publish_dataset(options.out, build_manifest(spec, finished, creator, state.fingerprint))
         summary.manifest_written = True
     summary.seconds = time.perf_counter() - start
     return summary

@@ -19,6 +19,7 @@ from torch.utils.data import IterableDataset, get_worker_info
 from .errors import UslError
 from .manifest import load_manifest
 from .schema import read_metadata
+from .upgrade import upgrade_table
 
 
 @dataclass(frozen=True)
@@ -29,14 +30,18 @@ class SceneLocation:
 
 
 class _OpenShard:
-    """A Parquet file plus the first row of each row group, for reading a row range cheaply."""
+    """A Parquet file plus the first row of each row group, for reading a row range cheaply.
 
-    def __init__(self, path: Path):
+    Rows come back in the current schema whatever version the file was written in.
+    """
+
+    def __init__(self, path: Path, table: str):
         try:
             self.file = pq.ParquetFile(path)
         except Exception as exc:
             raise UslError(f"{path}: cannot open Parquet shard ({exc})") from exc
-        read_metadata(self.file.schema_arrow, str(path))
+        self.table = table
+        self.version = read_metadata(self.file.schema_arrow, str(path))["schema_version"]
         meta = self.file.metadata
         self.group_starts = np.cumsum([0] + [meta.row_group(i).num_rows for i in range(meta.num_row_groups)])
 
@@ -48,14 +53,18 @@ class _OpenShard:
         g1 = bisect_right(self.group_starts, max(rows)) - 1
         table = self.file.read_row_groups(list(range(g0, g1 + 1)), columns=list(columns) if columns else None)
         base = int(self.group_starts[g0])
-        return table.take([r - base for r in rows]).to_pylist()
+        return upgrade_table(table.take([r - base for r in rows]), self.table, self.version).to_pylist()
+
+    def read_all(self) -> list[dict[str, Any]]:
+        return upgrade_table(self.file.read(), self.table, self.version).to_pylist()
 
 
 class RecordsDataset:
     """One split of a dataset folder, indexed by scene.
 
-    ``read_scene(scene_id)`` returns that scene's frame rows (dicts in schema v1, sorted by
-    view_id); ``views`` picks rows by position within the scene. Decode fields with
+    ``read_scene(scene_id)`` returns that scene's frame rows (dicts in the current schema, v2,
+    also for a v1 dataset; sorted by view_id); ``views`` picks rows by position within the scene.
+    Decode fields with
     ``usl.records.decode_image`` / ``decode_depth`` / ``decode_mask``.
     """
 
@@ -92,7 +101,7 @@ class RecordsDataset:
             info = self.shards[shard_pos][table]
             if info is None:
                 raise UslError(f"{self.root}: split {self.split!r} has no {table} table")
-            self._open[key] = _OpenShard(self.root / info["file"])
+            self._open[key] = _OpenShard(self.root / info["file"], table)
         return self._open[key]
 
     def num_views(self, scene_id: str) -> int:
@@ -120,7 +129,7 @@ class RecordsDataset:
         if self.shards[loc.shard]["objects"] is None:
             return []
         if loc.shard not in self._objects_cache:
-            rows = self._shard(loc.shard, "objects").file.read().to_pylist()
+            rows = self._shard(loc.shard, "objects").read_all()
             by_scene: dict[str, list[dict[str, Any]]] = {}
             for row in rows:
                 by_scene.setdefault(row["scene_id"], []).append(row)

@@ -74,7 +74,7 @@ def render_dynamic(
         settings: soft rasterizer parameters (the paper: the defaults).
         padding: growth of the union box, as a fraction of its longer side, on every side.
         min_size: smallest window side in image pixels.
-        true_boxes: (P, 4) boxes of the true masks (e.g. the records' ``bbox``), to skip
+        true_boxes: (P, 4) boxes of the true masks (e.g. the records' ``box_xyxy``), to skip
             computing them from the masks; they must contain the masks' True pixels.
         ignore_masks: optional P (H_p, W_p) bool masks of unobserved pixels (e.g. where another
             object is in the way): cells covered more than half by them are not ``valid``.
