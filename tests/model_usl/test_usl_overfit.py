@@ -19,7 +19,7 @@ from usl.records import RecordsDataset
 from usl.render import rasterize_hard
 
 OVERRIDES = [
-    "loss.weights.mu_2d=0", "optim.lr=3e-3", "optim.max_iter=60", "train.batch_size=3", "train.cpu_threads=1",
+    "loss.weights.mu_2d=0", "loss.weights.offset_l2=0.05", "optim.lr=3e-3", "optim.max_iter=60", "train.batch_size=3", "train.cpu_threads=1",
     "data.num_views=3", "data.max_size=0", "model.shape.num_stages=1", "loss.mesh_points=200", "loss.mask_points=200",
     "loss.render.resolution=32", "train.checkpoint_every=1000", "train.log_every=10",
 ]
@@ -81,4 +81,4 @@ def test_overfitting_one_scene_learns_layout_and_shape_beyond_the_sphere(one_sce
     # a fresh layout head puts objects at z = 3.25 m, the cuboids stand ~1.7 m away: IoU ~0 before
     assert after > 0.3 and after > before + 0.2, (before, after)
     # the shape head did more than the layout: spheres at the very same z and rho explain less
-    assert after > sphere + 0.03, (sphere, after)
+    assert after > sphere + 0.1, (sphere, after)  # measured: 0.39 vs 0.14
