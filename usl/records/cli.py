@@ -1,34 +1,48 @@
-"""``usl-records``: validate a dataset folder, or summarise it with counts and a contact sheet."""
+"""``usl-records``: validate a dataset folder, or summarise it with counts and a contact sheet.
+
+    usl-records validate data/scene_shapes               # schema, checksums, masks, boxes, ids, cameras
+    usl-records validate data/hypersim --split val --no-images
+    usl-records info data/scene_shapes --sheet sheet.png # counts per split/category + a contact sheet
+"""
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 from pathlib import Path
 
-from .errors import UslError
-from .info import contact_sheet, dataset_counts, format_counts
-from .validate import validate_dataset
+from usl.cli_common import common_options, make_parser
+
+COMMAND = "usl-records"
+
+
+def parser():
+    p = make_parser(COMMAND, __doc__)
+    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    check = sub.add_parser("validate", help="check a dataset folder against the record spec", description=__doc__,
+                           formatter_class=p.formatter_class, parents=[common_options(quiet="no progress bar")])
+    check.add_argument("root", type=Path, help="dataset folder (with manifest.json)")
+    check.add_argument("--split", action="append", help="only these splits (repeatable; default: all)")
+    check.add_argument("--no-images", action="store_true", help="skip decoding every image (faster)")
+    info = sub.add_parser("info", help="counts per split and category, and a contact sheet PNG", description=__doc__,
+                          formatter_class=p.formatter_class)
+    info.add_argument("root", type=Path, help="dataset folder (with manifest.json)")
+    info.add_argument("--sheet", type=Path, help="contact sheet path (default: ROOT/contact_sheet.png)")
+    info.add_argument("--split", help="split for the contact sheet (default: the first)")
+    info.add_argument("--scenes", type=int, default=4, help="scenes on the contact sheet")
+    info.add_argument("--views", type=int, default=4, help="views per scene on the contact sheet")
+    info.add_argument("--json", action="store_true", help="print counts as JSON")
+    return p
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="usl-records", description=__doc__)
-    sub = parser.add_subparsers(dest="command", required=True)
-    check = sub.add_parser("validate", help="check a dataset folder against the record spec")
-    check.add_argument("root", type=Path)
-    check.add_argument("--split", action="append", help="only these splits (repeatable)")
-    check.add_argument("--no-images", action="store_true", help="skip decoding every image (faster)")
-    info = sub.add_parser("info", help="counts per split and category, and a contact sheet PNG")
-    info.add_argument("root", type=Path)
-    info.add_argument("--sheet", type=Path, help="contact sheet path (default: ROOT/contact_sheet.png)")
-    info.add_argument("--split", help="split for the contact sheet (default: the first)")
-    info.add_argument("--scenes", type=int, default=4)
-    info.add_argument("--views", type=int, default=4)
-    info.add_argument("--json", action="store_true", help="print counts as JSON")
-    args = parser.parse_args(argv)
+    args = parser().parse_args(argv)
+    from .errors import UslError  # the tools below load pyarrow, OpenCV and (info) torch: after parsing
+    from .info import contact_sheet, dataset_counts, format_counts
+    from .validate import validate_dataset
+
     try:
         if args.command == "validate":
-            problems = validate_dataset(args.root, args.split, decode_images=not args.no_images, progress=True)
+            problems = validate_dataset(args.root, args.split, decode_images=not args.no_images, progress=not args.quiet)
             for problem in problems:
                 print(problem)
             print(f"{args.root}: {'valid' if not problems else f'{len(problems)} problem(s)'}")
@@ -39,7 +53,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"contact sheet: {sheet}")
         return 0
     except UslError as exc:
-        print(f"usl-records: error: {exc}", file=sys.stderr)
+        print(f"{COMMAND}: error: {exc}", file=sys.stderr)
         return 2
 
 
