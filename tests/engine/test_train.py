@@ -31,7 +31,7 @@ def records(tmp_path_factory):
 
 
 def _args(records, out, *overrides):
-    return ["--config", "tiny", "--output-dir", str(out), f"data.root={records}", *FAST, *overrides]
+    return ["--config", "tiny", "--out", str(out), f"data.root={records}", *FAST, *overrides]
 
 
 def _weights(path):
@@ -119,8 +119,8 @@ def test_clear_errors(records, tmp_path, capsys):
 
     assert "missing.yaml" in error_of(["--config", str(tmp_path / "missing.yaml")])
     assert "unknown key(s) ['lrr']" in error_of(_args(records, tmp_path / "x", "optim.lrr=1"))
-    assert "data.root is not set" in error_of(["--config", "tiny", "--output-dir", str(tmp_path / "y")])
-    assert "nowhere" in error_of(["--config", "tiny", "--output-dir", str(tmp_path / "y"), "data.root=/nowhere"])
+    assert "data.root is not set" in error_of(["--config", "tiny", "--out", str(tmp_path / "y")])
+    assert "nowhere" in error_of(["--config", "tiny", "--out", str(tmp_path / "y"), "data.root=/nowhere"])
     assert "too few" in error_of(_args(records, tmp_path / "z", "train.batch_size=64"))
     assert "does not exist" in error_of(["--resume", str(tmp_path / "nothing.pt")])
     assert "--resume needs" in error_of(["--resume"])

@@ -18,6 +18,7 @@ from usl.records import RecordsDataset
 
 from .checkpoint import CheckpointError, rng_state, set_rng_state, write_run_checkpoint
 from .distributed import DistInfo, all_gather_objects, barrier
+from .feedback import TrainingFeedback
 from .run_log import RunLog
 from .train_cli import main  # noqa: F401  (usl-train's entry point: parses before torch loads)
 from .train_step import TrainStep
@@ -87,10 +88,12 @@ class Trainer:
         if resume is not None:
             self.load_state(resume)
         self.log: RunLog | None = None
+        self.feedback: TrainingFeedback | None = None  # log.txt, validation, curves.png, summary
         if info.is_main:
             run_dir.mkdir(parents=True, exist_ok=True)
             save_config(cfg, run_dir / "config.yaml")
             self.log = RunLog(run_dir, self.iteration if resume is not None else None)
+            self.feedback = TrainingFeedback(cfg, run_dir, self.model, self.iteration, resume is not None)
 
     @property
     def model(self) -> USLModel:
@@ -148,6 +151,8 @@ class Trainer:
                         meter = Meter()
                     if self.iteration % cfg.train.checkpoint_every == 0 or self.iteration == cfg.optim.max_iter:
                         self.save()
+                    if self.feedback is not None:
+                        self.feedback.after_step(self.iteration)
                     if self.iteration >= cfg.optim.max_iter:
                         break
                 else:
@@ -156,6 +161,8 @@ class Trainer:
             bar.close()
             if self.log is not None:
                 self.log.close()
+            if self.feedback is not None:
+                self.feedback.close(self.iteration)
 
     def write_log(self, meter: Meter, bar: tqdm) -> None:
         """One CSV row: means over the interval's steps, averaged over ranks (keys a rank lacks,
@@ -171,6 +178,8 @@ class Trainer:
         row.update(epoch=self.epoch, lr=self.step.optimizer.param_groups[0]["lr"], peak_mem_mb=self.peak_memory_mb())
         assert self.log is not None
         self.log.write(self.iteration, row)
+        if self.feedback is not None:
+            self.feedback.log_row(self.iteration, row)
         bar.set_postfix(loss=f"{row['loss']:.4f}", l3d=f"{row.get('l3d', 0.0):.4f}")
 
     def peak_memory_mb(self) -> float:
