@@ -22,7 +22,7 @@ from .camera import Trajectory, intrinsics_from_m_cam_from_uv, load_trajectory, 
 from .frames import RawFrame, read_exr_frame, read_hdf5_frame
 from .instances import category_votes, instance_entries
 from .metadata import CameraModel, read_meters_per_asset_unit
-from .paths import INPUT_FORMATS, FrameSkip, TrajectoryPaths  # noqa: F401 (INPUT_FORMATS: public here too)
+from .paths import FrameSkip, TrajectoryPaths
 from .resample import Resampler
 from .tonemap import apply_tonemap, tonemap_scale
 

@@ -97,7 +97,7 @@ def test_two_process_ddp_step_equals_one_process_on_the_combined_batch(records, 
     frozen (batch statistics differ by construction)."""
     common = ["optim.name=sgd", "optim.lr=0.1", "optim.momentum=0", "optim.weight_decay=0", "optim.max_iter=1",
               "optim.schedule=constant", "loss.weights.mu_2d=0", "model.detector.backbone.resnet.norm=FrozenBN",
-              "data.num_views=3", "model.shape.num_stages=2"]
+              "data.num_views=3", "model.shape.num_stages=2", "val.period=0"]
     assert main(_args(records, tmp_path / "one", *common, "train.batch_size=2")) == 0
     env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(REPO)}
     command = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2", "-m", "usl.engine.train",

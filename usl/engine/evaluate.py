@@ -12,7 +12,6 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, Sequence
 
-import torch
 from tqdm import tqdm
 
 from data_specs import DATASETS, load_dataset_spec

@@ -20,12 +20,12 @@ from usl.config import Config
 from usl.engine.checkpoint import CheckpointError, resolve_checkpoint
 from usl.engine.curves import plot_curves
 from usl.engine.run_log import CSV_NAME
+from usl.engine.train_cli import COMMAND
 from usl.engine.validation import CSV_NAME as VALIDATION_CSV
 from usl.engine.validation import PeriodicValidation
 from usl.model.usl_model import USLModel
 
 LOG_NAME = "log.txt"
-PREFIX = "usl-train"
 
 
 def _duration(seconds: float) -> str:
@@ -56,7 +56,7 @@ class TrainingFeedback:
         self.file.write(stamped + "\n")
         self.file.flush()
         if console:
-            tqdm.write(f"{PREFIX}: {line}")
+            tqdm.write(f"{COMMAND}: {line}")
 
     def log_row(self, iteration: int, row: Mapping[str, Any]) -> None:
         """One line of ``log.txt`` per ``metrics.csv`` row (the console has the progress bar)."""
@@ -68,10 +68,14 @@ class TrainingFeedback:
     def after_step(self, iteration: int) -> None:
         if self.validation is not None and self.validation.due(iteration):
             began = time.perf_counter()
-            metrics = self.validation.run(self.model, iteration)
+            where = f"validation at iteration {iteration} on {self.cfg.data.val_split}"
+            try:
+                metrics = self.validation.run(self.model, iteration)
+            except (RuntimeError, ValueError) as exc:  # e.g. a diverged model's non-finite meshes
+                self.say(f"{where} failed, training goes on: {type(exc).__name__}: {exc}")
+                return
             values = ", ".join(f"{k.removeprefix('val/')} {v:.4g}" for k, v in metrics.items())
-            self.say(f"validation at iteration {iteration} on {self.cfg.data.val_split} "
-                     f"({time.perf_counter() - began:.1f} s): {values or 'no object scored'}")
+            self.say(f"{where} ({time.perf_counter() - began:.1f} s): {values or 'no object scored'}")
 
     def close(self, iteration: int) -> None:
         """Curves and the end-of-run summary (also after an error: what the run got to)."""
