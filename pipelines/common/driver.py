@@ -70,10 +70,11 @@ class BuildSummary:
         return text + f"; manifest not written yet: {len(self.pending_shards)} shard(s) still to build elsewhere"
 
 
-def build_common_options() -> argparse.ArgumentParser:
-    """The parent parser of every pipeline CLI: ``--out``, ``--workers``, ``--quiet`` in usl's shared style."""
+def build_common_options(seed: str | None = None) -> argparse.ArgumentParser:
+    """The parent parser of every pipeline CLI: ``--out``, ``--workers``, ``--quiet`` (and ``--seed``
+    with its help, for pipelines that draw random numbers) in usl's shared style."""
     return common_options(out="dataset folder to create or resume", out_required=True,
-                          workers="processes building scenes in parallel", quiet="no progress bar")
+                          workers="processes building scenes in parallel", seed=seed, quiet="no progress bar")
 
 
 def add_build_arguments(parser: argparse.ArgumentParser) -> None:

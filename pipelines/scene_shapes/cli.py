@@ -34,15 +34,14 @@ from .render import BACKGROUNDS, check_offscreen_rendering
 from .shapes import CATEGORIES, GENERATOR_VERSION, ModelRef, procedural_refs
 
 COMMAND = "usl-build-scene-shapes"
-EPILOG = ("World frame: the ground frame of camera 0 (origin on the floor below it, +Y up, +Z its horizontal "
-          "viewing direction), metres; objects stand at X in [-0.4, 0.4], Z in [1.5, 1.9]. "
+EPILOG = ("World frame: the ground frame of camera 0 (origin on the floor below it, +Y up, +Z its\n"
+          "horizontal viewing direction), metres; objects stand at X in [-0.4, 0.4], Z in [1.5, 1.9].\n"
           "view_id = height_index * azimuths + azimuth_index; view 0 is camera 0.")
 
 
 def parser() -> argparse.ArgumentParser:
     rig = RigConfig()
-    common = build_common_options()
-    common.add_argument("--seed", type=int, default=0, help="drives splits, layouts and appearance")
+    common = build_common_options(seed="drives splits, layouts and appearance")
     p = make_parser(COMMAND, __doc__, parents=[common], epilog=EPILOG)
     add_build_arguments(p)
     p.add_argument("--num-scenes", type=int, default=3600, help="scenes over all splits")
