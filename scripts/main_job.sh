@@ -33,9 +33,9 @@ usl-records info "$DATA" --sheet "$OUT/contact_sheet.png"
 
 echo "== 3/4 train the tiny recipe on CPU"
 if compgen -G "$RUN/checkpoints/model_*.pt" >/dev/null; then
-  usl-train --config tiny --output-dir "$RUN" --resume
+  usl-train --config tiny --out "$RUN" --resume
 else
-  usl-train --config tiny --output-dir "$RUN" data.root="$DATA"
+  usl-train --config tiny --out "$RUN" data.root="$DATA"
 fi
 
 echo "== 4/4 evaluate on the held-out build against the baselines"

@@ -34,14 +34,14 @@ class ConfigError(ValueError):
 @dataclass
 class DataConfig:
     root: str = ""  # records folder (DESIGN.md §3)
-    train_split: str = "train"
-    val_split: str = "val"
+    train_split: str = "train"  # split the model trains on
+    val_split: str = "val"  # split of the periodic validation (``val.*``) and of usl-eval's default
     num_views: int = 5  # M: the input view plus M - 1 other views
     view_sampling: str = "uniform"  # "uniform" | "time_distance" (p ∝ |view_id difference|, video data)
     input_view_stride: int = 1  # every k-th view of a scene is an input view (video data is redundant)
     max_size: int = 0  # resize so the longer image side is at most this; 0 keeps the stored size
     max_objects: int = 0  # objects of the input view in L_3D (a random subset); 0 keeps all
-    num_workers: int = 2
+    num_workers: int = 2  # data loader processes (0: load in the training process)
 
     def __post_init__(self) -> None:
         _check_choice("data.view_sampling", self.view_sampling, ("uniform", "time_distance"))
@@ -53,26 +53,26 @@ class DataConfig:
 class LayoutRange:
     """``z = z0 + z~ (z1 - z0)``, ``rho = rho0 + rho~ (rho1 - rho0)`` (metres, data_specs ``layout``)."""
 
-    z0: float = 0.0
-    z1: float = 0.0
-    rho0: float = 0.0
-    rho1: float = 0.0
+    z0: float = 0.0  # nearest object depth (metres); all four come from the manifest when z1 is 0
+    z1: float = 0.0  # farthest object depth (metres)
+    rho0: float = 0.0  # smallest object extent in depth (metres)
+    rho1: float = 0.0  # largest object extent in depth (metres)
 
 
 @dataclass
 class LayoutHeadConfig:
     in_features: tuple[str, ...] = ("p2",)  # paper Appendix tables: RoIAlign on FPN p2
     pooler_resolution: int = 7  # RoIAlign bins, then averaged to one 1 x C vector
-    num_fc: int = 4
-    fc_dim: int = 256
+    num_fc: int = 4  # fully connected layers before the per-category z~, rho~ sigmoids
+    fc_dim: int = 256  # width of each of them
 
 
 @dataclass
 class ShapeHeadConfig:
-    ico_level: int = 3
-    num_stages: int = 3
-    num_graph_convs: int = 3
-    hidden_dim: int = 256
+    ico_level: int = 3  # subdivisions of the initial ico-sphere (3: 642 vertices)
+    num_stages: int = 3  # refinement stages S, each {vertex features, graph convs, offsets}
+    num_graph_convs: int = 3  # graph convolutions per stage
+    hidden_dim: int = 256  # width of the graph convolutions
     feature: str = "p2"  # backbone map the vertex features come from
     sampler: str = "roimap"  # "roimap" (paper) | "vertalign" (Mesh R-CNN, the ablation)
     vertalign_resolution: int = 14  # RoIAlign size of the VertAlign ablation
@@ -110,9 +110,9 @@ class RenderConfig:
     """Dynamic soft rendering for l_xent; defaults are ``usl.render.SoftRasterSettings``'s."""
 
     resolution: int = 72  # side of every dynamic-rendering window (paper: 128 Scene-Shapes, 72 others)
-    sigma: float = _SOFT.sigma
-    blur_radius: float = _SOFT.blur_radius
-    faces_per_pixel: int = 10 if _SOFT.faces_per_pixel is None else _SOFT.faces_per_pixel
+    sigma: float = _SOFT.sigma  # sharpness of the soft silhouette (SoftRas sigma)
+    blur_radius: float = _SOFT.blur_radius  # faces farther than this from a pixel do not touch it
+    faces_per_pixel: int = 10 if _SOFT.faces_per_pixel is None else _SOFT.faces_per_pixel  # nearest faces blended
     padding: float = 0.05  # window margin, as a fraction of its longer side
 
     def settings(self) -> SoftRasterSettings:
@@ -149,15 +149,15 @@ class LossConfig:
 @dataclass
 class OptimConfig:
     name: str = "sgd"  # "sgd" | "adam"
-    lr: float = 0.01
-    momentum: float = 0.9
-    weight_decay: float = 1e-4
+    lr: float = 0.01  # base learning rate (for the whole batch of all processes)
+    momentum: float = 0.9  # SGD momentum (ignored by Adam)
+    weight_decay: float = 1e-4  # L2 penalty on the weights
     schedule: str = "step"  # "step" (x gamma at each of steps) | "constant"
-    steps: tuple[int, ...] = ()
-    gamma: float = 0.1
-    warmup_iters: int = 0
-    warmup_factor: float = 0.001
-    max_iter: int = 1000
+    steps: tuple[int, ...] = ()  # iterations at which the "step" schedule multiplies the rate by gamma
+    gamma: float = 0.1  # factor of each step
+    warmup_iters: int = 0  # linear warm-up length (0: none)
+    warmup_factor: float = 0.001  # rate at iteration 0 of the warm-up, as a fraction of lr
+    max_iter: int = 1000  # iterations to train
     clip_grad_norm: float = 0.0  # 0 disables clipping (the norm is still checked for NaN/inf)
 
     def __post_init__(self) -> None:
@@ -169,11 +169,11 @@ class OptimConfig:
 @dataclass
 class TrainConfig:
     batch_size: int = 2  # input images per process (GPU)
-    seed: int = 0
+    seed: int = 0  # seeds data order, sampling and initialisation
     device: str = "auto"  # "auto" | "cpu" | "cuda"
     amp: str = "bfloat16"  # autocast dtype on CUDA: "bfloat16" | "float16" | "none"; ignored on CPU
-    log_every: int = 20
-    checkpoint_every: int = 1000
+    log_every: int = 20  # iterations between rows of metrics.csv and lines of log.txt
+    checkpoint_every: int = 1000  # iterations between checkpoints (and one at the end)
     keep_checkpoints: int = 3  # newest checkpoints kept in the run folder (0 keeps all)
     cpu_threads: int = 0  # torch intra-op threads per process; 0 leaves torch's default
 
@@ -184,13 +184,28 @@ class TrainConfig:
 
 
 @dataclass
+class ValidationConfig:
+    """Periodic validation during training: a quick subset of ``usl-eval`` on ``data.val_split``."""
+
+    period: int = 500  # iterations between validations, plus one at the end; 0 disables validation
+    num_scenes: int = 4  # the first N scenes of the split (0: all)
+    input_views: str = "first"  # input views per scene, as usl-eval --input-views (all | first | every:K | ...)
+    samples_3d: int = 1000  # points per mesh for Chamfer / F1 when the split has 3D ground truth
+
+    def __post_init__(self) -> None:
+        if self.period < 0 or self.num_scenes < 0:
+            raise ConfigError(f"val.period and val.num_scenes must be >= 0, got {self.period}, {self.num_scenes}")
+
+
+@dataclass
 class Config:
-    name: str = "usl"
+    name: str = "usl"  # the run's name; default run folder: runs/<name>
     data: DataConfig = field(default_factory=DataConfig)
     model: ModelConfig = field(default_factory=ModelConfig)
     loss: LossConfig = field(default_factory=LossConfig)
     optim: OptimConfig = field(default_factory=OptimConfig)
     train: TrainConfig = field(default_factory=TrainConfig)
+    val: ValidationConfig = field(default_factory=ValidationConfig)
 
 
 def _check_choice(key: str, value: str, choices: Sequence[str]) -> None:
@@ -358,10 +373,34 @@ def parse_overrides(overrides: Sequence[str]) -> dict[str, Any]:
 
 
 def load_config(name_or_path: str | Path, overrides: Sequence[str] = ()) -> Config:
-    """Defaults <- recipe (with its ``_base_`` chain) <- overrides, checked and typed."""
+    """Defaults <- recipe (with its ``_base_`` chain) <- overrides, checked and typed.
+
+    A mistake in the recipe is reported against its file; one in the overrides against the
+    command line and the override that makes it."""
     path = resolve_config_path(name_or_path)
-    data = deep_merge(read_yaml_config(path), parse_overrides(overrides))
-    return config_from_dict(data, where=str(path))
+    recipe = read_yaml_config(path)
+    config = config_from_dict(recipe, where=str(path))
+    return apply_overrides(recipe, overrides) if overrides else config
+
+
+def apply_overrides(base: Mapping[str, Any], overrides: Sequence[str]) -> Config:
+    """``base`` (a valid nested config dict) with command-line ``key=value`` overrides on top."""
+    update = parse_overrides(overrides)
+    try:
+        return config_from_dict(deep_merge(base, update), where="command line")
+    except ConfigError as exc:
+        culprit = next((o for o in overrides if not _applies(base, o)), None)
+        if culprit is None:  # only the combination fails (e.g. a value checked against another)
+            raise
+        raise ConfigError(f"{exc} (override {culprit!r})") from None
+
+
+def _applies(base: Mapping[str, Any], override: str) -> bool:
+    try:
+        config_from_dict(deep_merge(base, parse_overrides([override])))
+    except ConfigError:
+        return False
+    return True
 
 
 def config_from_dict(data: Mapping[str, Any], where: str = "config") -> Config:
@@ -379,6 +418,11 @@ def config_from_dict(data: Mapping[str, Any], where: str = "config") -> Config:
         raise ConfigError(f"{where}: {exc}") from None
 
 
+def dump_config(config: Config) -> str:
+    """The resolved config (every field) as YAML, in definition order."""
+    return yaml.safe_dump(to_dict(config), sort_keys=False)
+
+
 def save_config(config: Config, path: str | Path) -> None:
     """Write the resolved config (every field) as YAML."""
-    Path(path).write_text(yaml.safe_dump(to_dict(config), sort_keys=False))
+    Path(path).write_text(dump_config(config))

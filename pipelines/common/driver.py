@@ -19,6 +19,7 @@ from typing import Any, Callable, Iterator
 
 from tqdm import tqdm
 
+from usl.cli_common import common_options
 from usl.records.encode import SceneRecord
 from usl.records.errors import UslError
 from usl.records.manifest import build_manifest, dataset_metadata, publish_dataset, usl_version
@@ -69,12 +70,17 @@ class BuildSummary:
         return text + f"; manifest not written yet: {len(self.pending_shards)} shard(s) still to build elsewhere"
 
 
+def build_common_options(seed: str | None = None) -> argparse.ArgumentParser:
+    """The parent parser of every pipeline CLI: ``--out``, ``--workers``, ``--quiet`` (and ``--seed``
+    with its help, for pipelines that draw random numbers) in usl's shared style."""
+    return common_options(out="dataset folder to create or resume", out_required=True,
+                          workers="processes building scenes in parallel", seed=seed, quiet="no progress bar")
+
+
 def add_build_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--out", type=Path, required=True, help="dataset folder to create or resume")
-    parser.add_argument("--workers", type=int, default=1, help="processes building scenes in parallel")
+    """Options of the build driver itself (with ``build_common_options`` as the parser's parent)."""
     parser.add_argument("--num-shards", type=int, default=1, help="split the build across this many machines")
     parser.add_argument("--shard-index", type=int, default=0, help="which part of --num-shards this run builds")
-    parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
 def build_options_from_args(args: argparse.Namespace) -> BuildOptions:

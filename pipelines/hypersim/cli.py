@@ -1,31 +1,34 @@
 """``usl-convert-hypersim``: convert downloaded Hypersim scenes into multi-view records.
 
-Example::
+Examples::
 
     usl-convert-hypersim /data/hypersim --split-csv metadata_images_split_scene_v1.csv \\
         --camera-csv metadata_camera_parameters.csv --out /data/usl/hypersim --workers 8
+    usl-convert-hypersim /data/hypersim/ai_001_001 --split-csv ... --camera-csv ... --out /tmp/hs \\
+        --resolution 512x384 --stride 10 --exclude-categories stuff
 """
 from __future__ import annotations
 
 import argparse
 import hashlib
-import re
 import sys
 from pathlib import Path
 
 from data_specs import load_dataset_spec
 from pipelines.common import (
     add_build_arguments,
+    build_common_options,
     build_options_from_args,
     creator_from_args,
     fingerprint_from_args,
     run_build,
 )
+from usl.cli_common import deprecated_alias, make_parser
+from usl.cli_common import resolution as parse_size
 from usl.records import UslError, load_manifest
 
-from .convert import INPUT_FORMATS, ConvertOptions, build_trajectory, single_threaded_worker
 from .metadata import read_camera_csv, read_split_csv
-from .plan import PlanConfig, discover_scenes, parse_blacklist, plan_shards
+from .paths import INPUT_FORMATS
 from .report import describe_dataset
 
 COMMAND = "usl-convert-hypersim"
@@ -33,40 +36,44 @@ STUFF = ("wall", "floor", "ceiling")
 
 
 def parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog=COMMAND, description=__doc__.split("\n\n")[0],
-                                formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    p = make_parser(COMMAND, __doc__, parents=[build_common_options()])
     p.add_argument("scenes", nargs="+", help="scene folders (ai_VVV_NNN) or folders holding them")
     p.add_argument("--split-csv", type=Path, required=True, help="metadata_images_split_scene_v1.csv")
     p.add_argument("--camera-csv", type=Path, required=True, help="metadata_camera_parameters.csv")
     add_build_arguments(p)
     p.add_argument("--splits", nargs="+", default=[], help="splits to convert, e.g. train val; empty: all")
     p.add_argument("--cameras", nargs="+", default=[], help="camera trajectories to convert, e.g. cam_00; empty: all")
-    p.add_argument("--frame-stride", type=int, default=1, help="convert frames whose number is a multiple of this")
+    # dest names stay as before the rename, so build fingerprints (and resuming) are unchanged
+    p.add_argument("--stride", dest="frame_stride", type=int, default=1, metavar="N",
+                   help="convert frames whose number is a multiple of this")
     p.add_argument("--blacklist", nargs="+", default=[], help="scenes or scene/camera to leave out")
     p.add_argument("--blacklist-file", type=Path, default=None, help="more blacklist entries, one per line")
     p.add_argument("--input-format", choices=INPUT_FORMATS, default="hdf5",
                    help="hdf5: the released files; exr: renderer EXRs (see pipelines/hypersim/paths.py)")
     p.add_argument("--resolution", default=None, metavar="WxH",
-                   help="stored image size, e.g. 512x384; none: as rendered")
+                   help="stored image size, e.g. 512x384 (one int: square); not given: as rendered")
     p.add_argument("--image-codec", choices=("jpeg", "png"), default="jpeg",
                    help="colour image encoding")
-    p.add_argument("--image-quality", type=int, default=95, help="JPEG quality")
+    p.add_argument("--jpeg-quality", dest="image_quality", type=int, default=95, metavar="Q", help="JPEG quality (1..100)")
     p.add_argument("--no-depth", action="store_true", help="do not store per-pixel depth")
     p.add_argument("--min-instance-pixels", type=int, default=100,
                    help="drop (and count) instance masks smaller than this at the stored resolution")
     p.add_argument("--exclude-categories", nargs="+", default=[],
                    help="NYU40 names or ids to leave out; 'stuff' = wall, floor, ceiling")
     p.add_argument("--scenes-per-shard", type=int, default=4, help="Hypersim scenes per output shard")
+    deprecated_alias(p, "--frame-stride", "--stride")
+    deprecated_alias(p, "--image-quality", "--jpeg-quality")
     return p
 
 
 def parse_resolution(text: str | None) -> tuple[int, int] | None:
+    """``--resolution`` (kept a string in the arguments, so build fingerprints stay as before)."""
     if text is None:
         return None
-    match = re.fullmatch(r"(\d+)x(\d+)", text.strip().lower())
-    if not match or min(int(match[1]), int(match[2])) < 1:
-        raise UslError(f"--resolution {text!r}: expected WIDTHxHEIGHT, e.g. 512x384")
-    return int(match[1]), int(match[2])
+    try:
+        return parse_size(text)
+    except argparse.ArgumentTypeError as exc:
+        raise UslError(f"--resolution {exc}") from None
 
 
 def parse_categories(tokens: list[str], spec: dict) -> tuple[int, ...]:
@@ -90,13 +97,16 @@ def _sha256(path: Path) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     args = parser().parse_args(argv)
+    from .convert import ConvertOptions, build_trajectory, single_threaded_worker  # torch: after parsing
+    from .plan import PlanConfig, discover_scenes, parse_blacklist, plan_shards
+
     try:
         build = build_options_from_args(args)
         spec = load_dataset_spec("hypersim")
         if args.frame_stride < 1 or args.scenes_per_shard < 1 or args.min_instance_pixels < 0:
-            raise UslError("--frame-stride and --scenes-per-shard must be >= 1, --min-instance-pixels >= 0")
+            raise UslError("--stride and --scenes-per-shard must be >= 1, --min-instance-pixels >= 0")
         if not 1 <= args.image_quality <= 100:
-            raise UslError(f"--image-quality {args.image_quality}: must lie in 1..100")
+            raise UslError(f"--jpeg-quality {args.image_quality}: must lie in 1..100")
         options = ConvertOptions(args.input_format, parse_resolution(args.resolution), args.image_codec,
                                  args.image_quality, args.min_instance_pixels,
                                  parse_categories(args.exclude_categories, spec), not args.no_depth)

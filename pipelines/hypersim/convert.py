@@ -26,7 +26,6 @@ from .paths import FrameSkip, TrajectoryPaths
 from .resample import Resampler
 from .tonemap import apply_tonemap, tonemap_scale
 
-INPUT_FORMATS = ("hdf5", "exr")
 UNLABELLED_REASON = "instance without an NYU40 label"
 
 

@@ -23,6 +23,8 @@ import re
 from dataclasses import dataclass
 from pathlib import Path
 
+INPUT_FORMATS = ("hdf5", "exr")  # the two layouts above
+
 SCENE_NAME = re.compile(r"^ai_\d{3}_\d{3}$")
 CAMERA_NAME = re.compile(r"^cam_\d{2}$")
 

@@ -4,6 +4,11 @@ Scans are read from ``--scans-root/<scan>/`` as ``<scan>.sens`` or as exported f
 scan lists come from the official ``scannetv2_<split>.txt`` files in ``--splits-dir``. Masks come
 from a detections file (COCO results, e.g. PointRend run with detectron2) or from ScanNet's own
 instance-filt/label-filt images. See pipelines/scannet/README.md for the file formats.
+
+    usl-convert-scannet --out data/scannet --scans-root /data/scannet/scans --splits-dir /data/scannet/splits \\
+        --detections pointrend_results.json --detection-images images.json --workers 8
+    usl-convert-scannet --out data/scannet_gt --scans-root ... --splits-dir ... --masks scannet-labels \\
+        --label-map scannetv2-labels.combined.tsv --tracker source-ids --resolution 320x240
 """
 from __future__ import annotations
 
@@ -12,49 +17,45 @@ import shutil
 import sys
 import tempfile
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from data_specs import load_dataset_spec
 from pipelines.common import (
     ShardPlan,
     add_build_arguments,
+    build_common_options,
     build_options_from_args,
     creator_from_args,
     fingerprint_from_args,
     run_build,
 )
+from usl.cli_common import deprecated_alias, make_parser, resolution
 from usl.records import UslError
 
-from .convert import ConvertOptions, ScanUnit, build_scene
-from .detections_file import DetectionsFileSource, split_detections
-from .masks import MaskSource
-from .scannet_labels import ScanNetLabelsSource
-from .tracker import TrackerConfig
+if TYPE_CHECKING:  # the converter loads torch: imported where used, after parsing (fast --help)
+    from .convert import ConvertOptions
+    from .masks import MaskSource
 
 COMMAND = "usl-convert-scannet"
 SPLITS = ("train", "val", "test")
 
 
 def parse_size(text: str) -> tuple[int, int] | None:
-    if text == "native":
-        return None
-    try:
-        width, height = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"size {text!r} is not WIDTHxHEIGHT or 'native'") from None
-    return width, height
+    """``--resolution``: the shared ``WxH``-or-one-int syntax, or ``native``."""
+    return None if text == "native" else resolution(text)
 
 
 def parser(spec: dict) -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog=COMMAND, description=__doc__.split("\n\n")[0],
-                                formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    p = make_parser(COMMAND, __doc__, parents=[build_common_options()])
     add_build_arguments(p)
     p.add_argument("--scans-root", type=Path, required=True, help="folder with one <scan id>/ folder per scan")
     p.add_argument("--splits-dir", type=Path, required=True, help="folder with scannetv2_{train,val,test}.txt")
-    p.add_argument("--splits", nargs="+", choices=SPLITS, default=["train", "val"])
+    p.add_argument("--splits", nargs="+", choices=SPLITS, default=["train", "val"], help="official splits to convert")
     p.add_argument("--scenes", nargs="+", default=None, help="convert only these scans (must be in --splits)")
-    p.add_argument("--scenes-per-shard", type=int, default=8)
+    p.add_argument("--scenes-per-shard", type=int, default=8, help="scans per output shard")
     masks = p.add_argument_group("mask source")
-    masks.add_argument("--masks", choices=("detections", "scannet-labels"), default="detections")
+    masks.add_argument("--masks", choices=("detections", "scannet-labels"), default="detections",
+                       help="detections: a 2D segmenter's COCO results; scannet-labels: ScanNet's own instance images")
     masks.add_argument("--detections", nargs="+", help="COCO results JSON file(s) from the segmenter")
     masks.add_argument("--detection-images", type=Path, help="COCO images JSON mapping image_id to scan frames")
     masks.add_argument("--category-ids", choices=("coco", "contiguous"), default="coco",
@@ -63,14 +64,16 @@ def parser(spec: dict) -> argparse.ArgumentParser:
     masks.add_argument("--min-score", type=float, default=0.5, help="ignore detections less confident than this")
     frames = p.add_argument_group("frames")
     frames.add_argument("--stride", type=int, default=10, help="process every N-th frame of a scan")
-    frames.add_argument("--size", type=parse_size, default=(640, 480), metavar="WxH",
-                        help="output resolution, or 'native' to keep the colour frames (and their JPEG bytes)")
-    frames.add_argument("--jpeg-quality", type=int, default=95, help="for re-encoded (resized) images")
+    # dest "size" as before the rename, so build fingerprints (and resuming) are unchanged
+    frames.add_argument("--resolution", dest="size", type=parse_size, default=(640, 480), metavar="WxH",
+                        help="output resolution (one int: square), or 'native' to keep the colour frames "
+                             "(and their JPEG bytes)")
+    frames.add_argument("--jpeg-quality", type=int, default=95, metavar="Q", help="for re-encoded (resized) images (1..100)")
     frames.add_argument("--no-depth", action="store_true", help="do not store depth images in the records")
     track = p.add_argument_group("tracking")
     track.add_argument("--tracker", choices=("iou", "source-ids"), default="iou",
                        help="source-ids: use ScanNet's instance ids as tracks (only with --masks scannet-labels)")
-    track.add_argument("--iou-threshold", type=float, default=0.5)
+    track.add_argument("--iou-threshold", type=float, default=0.5, help="mask IoU continuing a track")
     track.add_argument("--max-missed", type=int, default=3, help="processed frames a track may go unmatched")
     track.add_argument("--min-track-frames", type=int, default=int(spec["tracking"]["min_track_frames"]),
                        help="observations (processed frames) a track needs to become an object")
@@ -81,6 +84,7 @@ def parser(spec: dict) -> argparse.ArgumentParser:
                        help="warp the last mask of a track into the current frame with depth and pose "
                             "(auto: when --stride > 1)")
     track.add_argument("--depth-tolerance", type=float, default=0.2, help="metres, for the warp's visibility test")
+    deprecated_alias(p, "--size", "--resolution")
     return p
 
 
@@ -111,6 +115,9 @@ def scenes_by_split(args: argparse.Namespace) -> dict[str, list[str]]:
 
 
 def convert_options(args: argparse.Namespace) -> ConvertOptions:
+    from .convert import ConvertOptions
+    from .tracker import TrackerConfig
+
     try:
         tracker = TrackerConfig(args.iou_threshold, args.max_missed, args.min_track_frames,
                                 args.match_across_categories)
@@ -124,6 +131,9 @@ def convert_options(args: argparse.Namespace) -> ConvertOptions:
 
 def mask_source(args: argparse.Namespace, spec: dict, scenes: set[str], cache: Path) -> tuple[MaskSource, dict]:
     """The mask source, and what of its inputs belongs in the build fingerprint."""
+    from .detections_file import DetectionsFileSource, split_detections
+    from .scannet_labels import ScanNetLabelsSource
+
     categories = spec["categories"]
     if args.masks == "scannet-labels":
         if args.label_map is None:
@@ -147,6 +157,8 @@ def mask_source(args: argparse.Namespace, spec: dict, scenes: set[str], cache: P
 
 def plan_shards(chosen: dict[str, list[str]], scans_root: Path, per_shard: int, masks: MaskSource,
                 options: ConvertOptions) -> list[ShardPlan]:
+    from .convert import ScanUnit
+
     plans = []
     for split, scenes in chosen.items():
         for index, start in enumerate(range(0, len(scenes), per_shard)):
@@ -177,6 +189,8 @@ def main(argv: list[str] | None = None) -> int:
         masks, inputs = mask_source(args, spec, {s for scenes in chosen.values() for s in scenes}, cache)
         plans = plan_shards(chosen, args.scans_root, args.scenes_per_shard, masks, options)
         fingerprint = {**fingerprint_from_args(args), **inputs}
+        from .convert import build_scene
+
         summary = run_build(build, spec, fingerprint, plans, build_scene, creator_from_args(COMMAND, args),
                             worker_initializer=single_threaded_worker)
     except UslError as exc:

@@ -1,7 +1,13 @@
-"""``usl-build-scene-shapes``: build the Scene-Shapes records (paper Sec. 4.1, Appendix B).
+"""``usl-build-scene-shapes``: build the Scene-Shapes records (paper Sec. 4.1, Appendix B): pairs of
+chairs, sofas and tables on a floor, seen from an orbit of cameras, with RGB, depth, instance masks
+and 3D meshes.
 
 Defaults reproduce the paper's size: 4,000 shapes, 3,600 scenes x 24 views = 86,400 images of
 512x512, 80/10/10 splits with disjoint models and scenes.
+
+    usl-build-scene-shapes --out data/scene_shapes --workers 8          # the paper's size
+    usl-build-scene-shapes --out data/small --num-scenes 60 --num-models 60 --resolution 128 --views 8 --heights 2
+    usl-build-scene-shapes --out data/shapenet --mesh-root /data/ShapeNetCore --category-map synsets.yaml
 """
 from __future__ import annotations
 
@@ -13,37 +19,34 @@ from pathlib import Path
 from data_specs import load_dataset_spec
 from pipelines.common import (
     add_build_arguments,
+    build_common_options,
     build_options_from_args,
     creator_from_args,
     fingerprint_from_args,
     run_build,
 )
+from usl.cli_common import make_parser, resolution
 from usl.records import UslError
 
 from .layout import PlacementConfig, RigConfig
 from .mesh_root import SCALE_MODES, UP_AXES, MeshNormalisation, discover_models, dump_category_map, load_category_map
-from .plan import PlanConfig, plan_shards
 from .render import BACKGROUNDS, check_offscreen_rendering
-from .scene import SceneConfig, build_scene
 from .shapes import CATEGORIES, GENERATOR_VERSION, ModelRef, procedural_refs
 
 COMMAND = "usl-build-scene-shapes"
-DESCRIPTION = ("Build the Scene-Shapes records (paper Sec. 4.1, Appendix B): pairs of chairs, sofas and tables "
-               "on a floor, seen from an orbit of cameras, with RGB, depth, instance masks and 3D meshes.")
-EPILOG = ("World frame: the ground frame of camera 0 (origin on the floor below it, +Y up, +Z its horizontal "
-          "viewing direction), metres; objects stand at X in [-0.4, 0.4], Z in [1.5, 1.9]. "
+EPILOG = ("World frame: the ground frame of camera 0 (origin on the floor below it, +Y up, +Z its\n"
+          "horizontal viewing direction), metres; objects stand at X in [-0.4, 0.4], Z in [1.5, 1.9].\n"
           "view_id = height_index * azimuths + azimuth_index; view 0 is camera 0.")
 
 
 def parser() -> argparse.ArgumentParser:
     rig = RigConfig()
-    p = argparse.ArgumentParser(prog=COMMAND, description=DESCRIPTION, epilog=EPILOG,
-                                formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    common = build_common_options(seed="drives splits, layouts and appearance")
+    p = make_parser(COMMAND, __doc__, parents=[common], epilog=EPILOG)
     add_build_arguments(p)
     p.add_argument("--num-scenes", type=int, default=3600, help="scenes over all splits")
     p.add_argument("--num-models", type=int, default=4000,
                    help="procedural models over all categories (ignored with --mesh-root)")
-    p.add_argument("--seed", type=int, default=0, help="drives splits, layouts and appearance")
     p.add_argument("--azimuths", type=int, default=rig.azimuths, help="camera azimuths per height")
     p.add_argument("--heights", type=int, default=rig.heights, help="camera heights, evenly spaced in --height-range")
     p.add_argument("--views", type=int, default=None,
@@ -56,7 +59,8 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--z-range", type=float, nargs=2, default=placement.z_range, metavar=("NEAR", "FAR"),
                    help="object centres' Z (distance ahead of camera 0), metres (paper: 1.5 1.9); "
                         "the cameras orbit the middle of this range")
-    p.add_argument("--resolution", type=int, default=rig.resolution, help="square image size, pixels")
+    p.add_argument("--resolution", type=square_size, default=rig.resolution, metavar="N|NxN",
+                   help="image size in pixels (square)")
     p.add_argument("--fov-deg", type=float, default=rig.fov_deg,
                    help="field of view, degrees (70 keeps ~87%% of metric-size objects wholly in frame)")
     p.add_argument("--background", choices=BACKGROUNDS, default="floor",
@@ -77,6 +81,15 @@ def parser() -> argparse.ArgumentParser:
                    help="leave out scenes whose mesh cannot be read, recording them in the manifest, "
                         "instead of stopping with an error")
     return p
+
+
+def square_size(text: str) -> int:
+    """``--resolution`` in the shared ``WxH``-or-one-int syntax; Scene-Shapes images are square
+    (kept an int so build fingerprints stay as before)."""
+    width, height = resolution(text)
+    if width != height:
+        raise argparse.ArgumentTypeError(f"{text!r}: Scene-Shapes images are square; give one size, e.g. 512")
+    return width
 
 
 def _rig(args: argparse.Namespace) -> RigConfig:
@@ -121,6 +134,9 @@ def _models(args: argparse.Namespace) -> tuple[list[ModelRef], MeshNormalisation
 
 def main(argv: list[str] | None = None) -> int:
     args = parser().parse_args(argv)
+    from .plan import PlanConfig, plan_shards  # torch: after parsing, so --help is fast
+    from .scene import SceneConfig, build_scene
+
     try:
         options = build_options_from_args(args)
         spec = load_dataset_spec("scene_shapes")

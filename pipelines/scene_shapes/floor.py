@@ -11,9 +11,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import torch
-
-from usl.geometry.cameras import unproject
 
 MAX_FLOOR_DEPTH = 15.0  # metres; beyond this the background colour shows (a horizon)
 MIN_ROUGHNESS = 0.04  # pyrender's dielectric reflectance, removed from the diffuse albedo
@@ -43,6 +40,10 @@ class FloorRenderer:
 
     def __init__(self, look: FloorLook, lights: list[Light], ambient: np.ndarray, K: np.ndarray, height: int,
                  width: int):
+        import torch  # not at import: the CLI's --help must not load torch
+
+        from usl.geometry.cameras import unproject
+
         u, v = np.meshgrid(np.arange(width) + 0.5, np.arange(height) + 0.5)
         uv = torch.as_tensor(np.stack([u, v], axis=-1))
         # Camera-frame rays through pixel centres with z = 1: the ray parameter is planar depth.

@@ -20,8 +20,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from usl.geometry.cameras import intrinsics_from_fov, look_at
-
 from .shapes import ModelRef
 
 
@@ -83,6 +81,8 @@ class SceneLayout:
 
 def orbit_poses(rig: RigConfig, placement: PlacementConfig, rng: np.random.Generator) -> list[np.ndarray]:
     """Camera poses of all views, in view_id order; view 0 sits at the world origin's vertical."""
+    from usl.geometry.cameras import look_at  # torch: not at import (fast --help)
+
     radius = placement.orbit_center_z
     target = np.array([0.0, rig.target_height, radius])
     step = 2 * math.pi / rig.azimuths
@@ -119,5 +119,7 @@ def sample_layout(rng: np.random.Generator, pools: dict[str, list[ModelRef]], ri
         x = float(rng.uniform(*placement.x_range))
         z = float(rng.uniform(*placement.z_range))
         objects.append(ObjectPlacement(instance_id, model, yaw, x, z))
+    from usl.geometry.cameras import intrinsics_from_fov
+
     K = intrinsics_from_fov(math.radians(rig.fov_deg), rig.resolution, rig.resolution).numpy()
     return SceneLayout(tuple(objects), tuple(orbit_poses(rig, placement, rng)), K)

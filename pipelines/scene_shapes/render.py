@@ -22,7 +22,6 @@ os.environ.setdefault("LP_NUM_THREADS", "1")
 import numpy as np  # noqa: E402
 import trimesh  # noqa: E402
 
-from usl.geometry.cameras import opencv_to_opengl_camera  # noqa: E402
 from usl.records import UslError  # noqa: E402
 
 from .floor import FloorRenderer, Light, sample_floor  # noqa: E402
@@ -34,7 +33,6 @@ if TYPE_CHECKING:
 
 Z_NEAR, Z_FAR = 0.05, 30.0
 BACKGROUNDS = ("plain", "floor")
-_OPENCV_TO_OPENGL = opencv_to_opengl_camera().numpy()
 _RENDERERS: dict[tuple[int, int], pyrender.OffscreenRenderer] = {}
 
 EGL_HELP = ("offscreen rendering failed ({error}); install libegl1 and libgl1-mesa-dri "
@@ -161,10 +159,13 @@ def render_scene(objects: list[PlacedModel], K: np.ndarray, cam_to_world: list[n
         floor = FloorRenderer(look, lights, ambient, K, resolution, resolution)
     camera_node = scene.add(pyrender.IntrinsicsCamera(fx=K[0, 0], fy=K[1, 1], cx=K[0, 2], cy=K[1, 2],
                                                       znear=Z_NEAR, zfar=Z_FAR))
+    from usl.geometry.cameras import opencv_to_opengl_camera  # torch: not at import (fast --help)
+
+    opencv_to_opengl = opencv_to_opengl_camera().numpy()
     views = []
     try:
         for pose in cam_to_world:
-            scene.set_pose(camera_node, pose @ _OPENCV_TO_OPENGL)
+            scene.set_pose(camera_node, pose @ opencv_to_opengl)
             rgba, _ = renderer.render(scene, flags=pyrender.RenderFlags.RGBA)
             seg, depth = renderer.render(scene, flags=pyrender.RenderFlags.SEG, seg_node_map=seg_map)
             back = np.broadcast_to(sky, (resolution, resolution, 3))

@@ -7,7 +7,8 @@ import pytest
 
 from eval_helpers import build_dataset, tiny_checkpoint
 from usl.engine.eval_views import FurthestFraction, view_selection
-from usl.engine.evaluate import dataset_spec, main
+from usl.engine.eval_cli import main
+from usl.engine.evaluate import dataset_spec
 
 ALL_ROWS = "random,fixed,model,detections,layout_only,sphere_true_depth,model_true_depth"
 
@@ -38,6 +39,49 @@ def test_every_row_with_a_checkpoint(data, tmp_path, capsys):
     assert len(list((out / "pictures").rglob("*.png"))) == len(names)
     table = (out / "table.md").read_text()
     assert table in capsys.readouterr().out and "| USL w/ true depth |" in table
+    assert "Pictures: [pictures/index.md](pictures/index.md)" in table and document["links"]["pictures"] == "pictures/index.md"
+    assert "curves" not in table  # the random checkpoint's run folder has no curves.png
+
+
+def _index_entries(index):
+    """(picture path, scene, input view, objects.jsonl line numbers) of each row of index.md."""
+    entries = []
+    for line in index.splitlines():
+        if line.startswith("| <a href="):
+            cells = [c.strip() for c in line.strip("|").split("|")]
+            path = cells[0].split('"')[1]
+            entries.append((path, cells[1], int(cells[2]), [int(n) for n in cells[3].split(",") if n.strip() != "–"]))
+    return entries
+
+
+@pytest.mark.parametrize("pictures_by", ["spread", "extremes"])
+def test_pictures_are_spread_or_extremes_and_indexed(data, tmp_path, capsys, pictures_by):
+    dataset, checkpoint = data
+    (checkpoint.parent.parent / "curves.png").write_bytes(b"")  # a training run's curves
+    out = tmp_path / "eval"
+    rc = main([str(dataset), "--checkpoint", str(checkpoint), "--rows", "fixed,model", "--out", str(out), "--samples-3d", "50",
+               "--pictures", "2", "--pictures-by", pictures_by, "--device", "cpu", "--quiet"])
+    assert rc == 0, capsys.readouterr().err
+    rows = [json.loads(line) for line in (out / "objects.jsonl").read_text().splitlines()]
+    entries = _index_entries((out / "pictures" / "index.md").read_text())
+    assert len(entries) == 4 and all((out / "pictures" / path).is_file() for path, *_ in entries)  # 2 views x 2 rows
+    for path, scene, view, lines in entries:  # the index points at the picture's own objects
+        assert lines and all(rows[n - 1]["scene_id"] == scene and rows[n - 1]["input_view"] == view for n in lines)
+        assert {rows[n - 1]["predictor"] for n in lines} == {"Fixed depth" if path.startswith("Fixed") else "USL"}
+    chosen = {(scene, view) for _, scene, view, _ in entries}
+    if pictures_by == "spread":
+        assert {scene for scene, _ in chosen} == {r["scene_id"] for r in rows}  # both scenes, not the first twice
+    else:  # the worst and the best input view by the first row's mean Mask IoU (views)
+        means = {}
+        for r in rows:
+            if r["predictor"] == "Fixed depth" and r["mask_iou_views"] is not None:
+                means.setdefault((r["scene_id"], r["input_view"]), []).append(r["mask_iou_views"])
+        ranked = sorted(means, key=lambda k: sum(means[k]) / len(means[k]))
+        assert chosen == {ranked[0], ranked[-1]}
+    table = (out / "table.md").read_text()
+    assert "Training curves: [../" in table and table.rstrip().endswith("curves.png)")
+    target = table.rstrip().rsplit("(", 1)[1].rstrip(")")
+    assert (out / target).resolve() == (checkpoint.parent.parent / "curves.png").resolve()
 
 
 def test_cli_errors_are_one_line(data, tmp_path, capsys):

@@ -5,6 +5,7 @@ import sys
 from dataclasses import replace
 from pathlib import Path
 
+import cv2
 import pytest
 import torch
 
@@ -31,7 +32,7 @@ def records(tmp_path_factory):
 
 
 def _args(records, out, *overrides):
-    return ["--config", "tiny", "--output-dir", str(out), f"data.root={records}", *FAST, *overrides]
+    return ["--config", "tiny", "--out", str(out), f"data.root={records}", *FAST, *overrides]
 
 
 def _weights(path):
@@ -59,13 +60,44 @@ def test_resume_reproduces_the_uninterrupted_run(records, tmp_path):
     assert (tmp_path / "cut" / "config.yaml").is_file()
 
 
+def test_training_feedback_files(records, tmp_path, monkeypatch, capsys):
+    """log.txt, validation.csv, curves.png and the summary of a 4-iteration run started with a
+    relative data.root (saved absolute, so the run resumes from anywhere)."""
+    monkeypatch.chdir(records.parent)
+    out = tmp_path / "fb"
+    argv = ["--config", "tiny", "--out", str(out), f"data.root={records.name}", *FAST, "train.batch_size=2",
+            "optim.max_iter=4", "train.log_every=2", "train.checkpoint_every=2", "val.period=2", "val.num_scenes=1"]
+    assert main(argv) == 0
+    printed = capsys.readouterr().out
+    cfg = load_config(out / "config.yaml")
+    assert cfg.data.root == str(records.resolve())
+    params = sum(p.numel() for p in load_model(out)[0].parameters())
+    log = (out / "log.txt").read_text()
+    assert f"{params:,} parameters" in log and f"{params:,} parameters" in printed
+    assert log.count("iter 2/4") == 1 and log.count("validation at iteration") == 2
+    summary = log.strip().splitlines()[-1]
+    assert "finished at iteration 4" in summary and "model_0000004.pt" in summary and "curves.png" in summary
+    assert summary.split("] ", 1)[1] in printed
+    rows = read_metrics(out, "validation.csv")
+    assert [r["iteration"] for r in rows] == [2, 4]
+    assert all(0.0 <= r["val/mask_iou_input"] <= 1.0 and 0.0 <= r["val/mask_iou_views"] <= 1.0 for r in rows)
+    assert rows[0]["val/chamfer"] > 0  # the synthetic records have 3D ground truth
+    curves = cv2.imread(str(out / "curves.png"))
+    assert curves is not None and curves.shape[0] > 600 and curves.std() > 10  # three panels, not a blank canvas
+
+    monkeypatch.chdir(tmp_path)  # another folder: the absolute root still resolves
+    assert main(["--resume", f"data.root={records}", "--out", str(out), "optim.max_iter=5", "val.period=0"]) == 0
+    assert load_config(out / "config.yaml").optim.max_iter == 5
+    assert "resuming at iteration 4" in (out / "log.txt").read_text()
+
+
 def test_two_process_ddp_step_equals_one_process_on_the_combined_batch(records, tmp_path):
     """One SGD step (lr 0.1, no momentum): weights after it hold the averaged gradient. Detection
     losses are off (their proposal sampling draws per-process random numbers) and BatchNorm is
     frozen (batch statistics differ by construction)."""
     common = ["optim.name=sgd", "optim.lr=0.1", "optim.momentum=0", "optim.weight_decay=0", "optim.max_iter=1",
               "optim.schedule=constant", "loss.weights.mu_2d=0", "model.detector.backbone.resnet.norm=FrozenBN",
-              "data.num_views=3", "model.shape.num_stages=2"]
+              "data.num_views=3", "model.shape.num_stages=2", "val.period=0"]
     assert main(_args(records, tmp_path / "one", *common, "train.batch_size=2")) == 0
     env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(REPO)}
     command = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2", "-m", "usl.engine.train",
@@ -119,8 +151,8 @@ def test_clear_errors(records, tmp_path, capsys):
 
     assert "missing.yaml" in error_of(["--config", str(tmp_path / "missing.yaml")])
     assert "unknown key(s) ['lrr']" in error_of(_args(records, tmp_path / "x", "optim.lrr=1"))
-    assert "data.root is not set" in error_of(["--config", "tiny", "--output-dir", str(tmp_path / "y")])
-    assert "nowhere" in error_of(["--config", "tiny", "--output-dir", str(tmp_path / "y"), "data.root=/nowhere"])
+    assert "data.root is not set" in error_of(["--config", "tiny", "--out", str(tmp_path / "y")])
+    assert "nowhere" in error_of(["--config", "tiny", "--out", str(tmp_path / "y"), "data.root=/nowhere"])
     assert "too few" in error_of(_args(records, tmp_path / "z", "train.batch_size=64"))
     assert "does not exist" in error_of(["--resume", str(tmp_path / "nothing.pt")])
     assert "--resume needs" in error_of(["--resume"])

@@ -71,7 +71,7 @@ def one_scene(tmp_path_factory):
 
 
 def test_overfitting_one_scene_learns_layout_and_shape_beyond_the_sphere(one_scene, tmp_path):
-    assert main(["--config", "tiny", "--output-dir", str(tmp_path / "run"), f"data.root={one_scene}", *OVERRIDES]) == 0
+    assert main(["--config", "tiny", "--out", str(tmp_path / "run"), f"data.root={one_scene}", *OVERRIDES]) == 0
     trained, config = load_model(tmp_path / "run")
     seed_everything(config.train.seed, 0)  # the trainer's own initialisation
     initial = USLModel(config.model, config.loss).eval()

@@ -30,6 +30,7 @@ from typing import Any, Sequence
 
 import torch
 
+from usl.engine.baseline_options import DEFAULT_SPHERE_LEVEL, TRUE_DEPTH_SOURCES
 from usl.engine.eval_types import EvalInput, Predictor
 from usl.geometry import cube_to_frustum, frustum_to_cube, ico_sphere
 from usl.model.outputs import ObjectPredictions
@@ -37,8 +38,6 @@ from usl.model.outputs import ObjectPredictions
 Tensor = torch.Tensor
 
 # The model's initial mesh is a level-3 ico-sphere (paper, Appendix tables); baselines use the same.
-DEFAULT_SPHERE_LEVEL = 3
-TRUE_DEPTH_SOURCES = ("auto", "centre", "nearest")
 
 
 def stable_seed(*parts: Any) -> int:

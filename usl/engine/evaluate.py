@@ -1,39 +1,32 @@
-"""``usl-eval``: every metric of the paper (Sec. 4) for the model and the baselines on one split.
+"""The evaluation behind ``usl-eval`` (command line: ``usl.engine.eval_cli``): every predictor on
+the input views of a split, scene by scene, into per-object rows, summaries and pictures.
 
-    usl-eval DATA --split val --checkpoint run/model.pt --out eval/ --rows random,fixed,model,layout_only
-
-Writes ``metrics.json`` (per-predictor means and counts, configuration), ``objects.jsonl`` (every
-scored object, for re-aggregation), ``table.md`` (the paper's table layout for the dataset) and
-``pictures/``. The metric definitions are in ``eval_render`` (pairs), ``eval_scene``
-(aggregation), ``eval_views`` (which views), ``eval_detection`` (matching, AP) and ``baselines``.
+The metric definitions are in ``eval_render`` (pairs), ``eval_scene`` (aggregation),
+``eval_views`` (which views), ``eval_detection`` (matching, AP) and ``baselines``; the pictures
+and their index in ``eval_gallery``.
 """
 from __future__ import annotations
 
 import argparse
-import re
-import sys
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, Sequence
 
-import torch
 from tqdm import tqdm
 
 from data_specs import DATASETS, load_dataset_spec
 from usl.data.frames import CategoryIndex
-from usl.engine.baselines import DEFAULT_SPHERE_LEVEL, TRUE_DEPTH_SOURCES, FixedDepthBaseline, LayoutOnly, TrueDepth, spec_baselines
+from usl.engine.baselines import FixedDepthBaseline, LayoutOnly, TrueDepth, spec_baselines
+from usl.engine.eval_cli import MODEL_ROWS, ROWS
 from usl.engine.eval_detection import CocoDetections
-from usl.engine.eval_pictures import evaluation_picture
-from usl.engine.eval_scene import EvalConfig, SceneOutcome, evaluate_scene
+from usl.engine.eval_gallery import Gallery
+from usl.engine.eval_scene import EvalConfig, evaluate_scene
 from usl.engine.eval_summary import DetectionCounts, PredictorSummary, summarize
 from usl.engine.eval_types import Predictor
 from usl.engine.eval_views import view_selection
-from usl.engine.report import TABLE_LAYOUTS, choose_layout, write_report
-from usl.engine.visualize import write_png
-from usl.records import RecordsDataset, UslError, frame_pose
+from usl.engine.report import choose_layout
+from usl.records import RecordsDataset, UslError
 
-ROWS = ("random", "fixed", "model", "detections", "layout_only", "sphere_true_depth", "model_true_depth")
-MODEL_ROWS = ("model", "detections", "layout_only", "model_true_depth")
 
 
 @dataclass
@@ -42,6 +35,7 @@ class EvalRun:
     summaries: list[PredictorSummary]
     rows: list[dict[str, Any]]
     layout: str
+    pictures_index: Path | None = None
 
 
 def dataset_spec(manifest: dict[str, Any]) -> dict[str, Any]:
@@ -61,8 +55,11 @@ def run_evaluation(
     num_pictures: int = 0,
     table_layout: str = "auto",
     progress: bool = True,
+    pictures_by: str = "spread",
+    picture_score: float = 0.5,
 ) -> EvalRun:
-    """Evaluate ``predictors`` on a split; pictures of the first ``num_pictures`` input views go to ``pictures_dir``."""
+    """Evaluate ``predictors`` on a split; ``num_pictures`` input views chosen ``pictures_by`` (see
+    ``eval_gallery``) are drawn into ``pictures_dir`` with an ``index.md``."""
     names = [p.name for p in predictors]
     if len(set(names)) != len(names):
         raise UslError(f"predictor names must be unique, got {names}")
@@ -78,8 +75,12 @@ def run_evaluation(
     coco = {p: CocoDetections(categories.ids, categories.names) for p, pr in enumerate(predictors) if pr.uses_detections}
     counts = {pr.name: DetectionCounts() for pr in predictors if pr.uses_detections}
     rows: list[dict[str, Any]] = []
-    num_inputs, pictures_left = 0, num_pictures if pictures_dir else 0
-    for scene_id in tqdm(scenes, desc=f"evaluating {dataset.manifest['name']}/{split}", unit="scene", disable=not progress):
+    num_inputs = 0
+    gallery = Gallery(Path(pictures_dir or "."), num_pictures if pictures_dir else 0, pictures_by, predictors, categories,
+                      picture_score)
+    gallery.start(len(scenes))
+    bar = tqdm(scenes, desc=f"evaluating {dataset.manifest['name']}/{split}", unit="scene", disable=not progress)
+    for scene_index, scene_id in enumerate(bar):
         outcome = evaluate_scene(dataset, scene_id, predictors, categories, selection, config, coco)
         rows += outcome.rows
         num_inputs += len(outcome.inputs)
@@ -88,8 +89,8 @@ def run_evaluation(
                 frame = outcome.inputs[pr.inp].frame
                 matched = int((pr.pred.instance_ids >= 0).sum())
                 counts[predictors[pr.predictor].name].add(len(frame.instance_ids), len(pr.pred), matched)
-        if pictures_left > 0:
-            pictures_left -= _write_pictures(dataset, outcome, predictors, categories, Path(pictures_dir), pictures_left)
+        gallery.scene_done(dataset, scene_index, outcome)
+    gallery.finish(dataset, rows, selection, config)
     average_precision = {predictors[p].name: c.evaluate() for p, c in coco.items()}
     summaries = summarize(predictors, rows, counts, average_precision)
     header = {
@@ -97,31 +98,7 @@ def run_evaluation(
         "num_input_views": num_inputs, "config": asdict(config),
     }
     layout = choose_layout(header["dataset"], summaries) if table_layout == "auto" else table_layout
-    return EvalRun(header, summaries, rows, layout)
-
-
-def _slug(text: str) -> str:
-    return re.sub(r"[^A-Za-z0-9._-]+", "_", text).strip("_") or "x"
-
-
-def _write_pictures(
-    dataset: RecordsDataset, outcome: SceneOutcome, predictors: Sequence[Predictor], categories: CategoryIndex,
-    out_dir: Path, limit: int,
-) -> int:
-    """Pictures for up to ``limit`` input views of this scene (one per predictor each); returns how many views."""
-    if not outcome.inputs:
-        return 0
-    scene_id = outcome.inputs[0].frame.scene_id
-    poses = [torch.from_numpy(frame_pose(r)) for r in dataset.read_scene(scene_id, columns=["cam_to_world"])]
-    done = set()
-    for pr in outcome.predictions:
-        if pr.inp >= limit:
-            continue
-        inp, name = outcome.inputs[pr.inp], predictors[pr.predictor].name
-        picture = evaluation_picture(dataset, inp, outcome.positions[pr.inp], pr.pred, name, categories, poses)
-        write_png(out_dir / _slug(name) / f"{_slug(scene_id)}_view{inp.frame.view_id:05d}.png", picture)
-        done.add(pr.inp)
-    return len(done)
+    return EvalRun(header, summaries, rows, layout, gallery.write_index(rows))
 
 
 def build_predictors(args: argparse.Namespace, spec: dict[str, Any]) -> list[Predictor]:
@@ -162,64 +139,3 @@ def build_predictors(args: argparse.Namespace, spec: dict[str, Any]) -> list[Pre
         elif row == "model_true_depth":
             made[row] = TrueDepth(model, args.true_depth_source)
     return list(made.values())
-
-
-def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
-    p = argparse.ArgumentParser(prog="usl-eval", description=__doc__.split("\n\n")[0], formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    p.add_argument("root", help="dataset folder (records with manifest.json)")
-    p.add_argument("--split", default="val")
-    p.add_argument("--checkpoint", help="trained model checkpoint (needed by the model rows)")
-    p.add_argument("--rows", help=f"comma-separated table rows from {', '.join(ROWS)} "
-                   "(default: random,fixed, plus model,layout_only with --checkpoint)")
-    p.add_argument("--out", default="eval", help="output folder")
-    p.add_argument("--input-views", default="all",
-                   help="input views per scene: all (the paper's protocol) | first | every:K | positions:P1,P2")
-    p.add_argument("--other-views", default="auto", help="views scoring each object: all | furthest:F | auto (ScanNet spec: furthest 20%%)")
-    p.add_argument("--scenes", help="comma-separated scene ids (default: all scenes of the split)")
-    p.add_argument("--max-scenes", type=int, help="evaluate only the first N scenes")
-    p.add_argument("--no-occlusion", action="store_true", help="render each object alone instead of all objects together")
-    p.add_argument("--true-depth-source", default="auto", choices=TRUE_DEPTH_SOURCES)
-    p.add_argument("--sphere-level", type=int, default=DEFAULT_SPHERE_LEVEL, help="ico-sphere level of sphere baselines")
-    p.add_argument("--samples-3d", type=int, default=10_000, help="points sampled per mesh for Chamfer / F1")
-    p.add_argument("--f1-threshold", type=float, default=0.1, help="F1 distance threshold in metres")
-    p.add_argument("--match-iou", type=float, default=0.5, help="box IoU matching detections to true objects")
-    p.add_argument("--occluder-score", type=float, default=0.5,
-                   help="detections scoring at least this occlude each other in the masks for segm AP")
-    p.add_argument("--pictures", type=int, default=4, help="input views to draw (per predictor)")
-    p.add_argument("--table-layout", default="auto", choices=("auto",) + TABLE_LAYOUTS)
-    p.add_argument("--views-per-chunk", type=int, default=8)
-    p.add_argument("--batch-size", type=int, default=4)
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
-    p.add_argument("--quiet", action="store_true")
-    return p.parse_args(argv)
-
-
-def main(argv: Sequence[str] | None = None) -> int:
-    args = parse_args(argv)
-    try:
-        dataset = RecordsDataset(args.root, args.split)
-        predictors = build_predictors(args, dataset_spec(dataset.manifest))
-        config = EvalConfig(
-            input_views=args.input_views, other_views=args.other_views, occlusion=not args.no_occlusion,
-            match_iou=args.match_iou, occluder_score=args.occluder_score, num_samples_3d=args.samples_3d, f1_threshold=args.f1_threshold,
-            views_per_chunk=args.views_per_chunk, batch_size=args.batch_size, seed=args.seed, device=args.device,
-        )
-        out = Path(args.out)
-        run = run_evaluation(
-            args.root, args.split, predictors, config,
-            scene_ids=args.scenes.split(",") if args.scenes else None, max_scenes=args.max_scenes,
-            pictures_dir=out / "pictures", num_pictures=args.pictures, table_layout=args.table_layout,
-            progress=not args.quiet,
-        )
-        paths = write_report(out, run.header, run.summaries, run.rows, run.layout)
-    except UslError as exc:
-        print(f"usl-eval: error: {exc}", file=sys.stderr)
-        return 2
-    print(paths["table"].read_text())
-    print(f"wrote {', '.join(str(p) for p in paths.values())}")
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -1,22 +1,16 @@
-"""``usl-predict``: 3D objects from single images with a trained model.
+"""``usl-predict``: 3D objects from single images with a trained model (the library behind
+``usl.engine.predict_cli``).
 
-    usl-predict --checkpoint run/ --K intrinsics.txt photo.jpg   # or --fov 60 instead of --K
-
-For each image it writes ``<name>.glb`` (one mesh per detected object, named ``<index>_<category>``,
-in the camera frame) -- plus ``.obj`` and/or ``.ply`` with ``--formats`` -- and ``<name>_overlay.png``
-(the meshes rendered over the image, with boxes and scores).
-
-Coordinates are the OpenCV camera frame of DESIGN.md §2 (x right, y down, z forward, metres);
-``--axes opengl`` flips y and z for viewers that expect y up. ``K`` follows DESIGN.md §2 too (pixel
-centres at +0.5); a K from an OpenCV calibration (integer pixel centres) needs ``--opencv-k``.
-A PLY holds one mesh, so it contains all objects merged, each with its own vertex colour.
+For each image it writes ``<name>.glb`` -- one mesh per detected object, the input camera and the
+image as a textured plane, in glTF's +Y-up axes (``usl.engine.gltf_scene``) -- plus ``.obj``,
+``.ply`` (objects only) and ``.html`` (a self-contained 3D viewer of the GLB) with ``--formats``,
+and ``<name>_overlay.png`` (the meshes rendered over the image, with boxes and scores).
 """
 from __future__ import annotations
 
-import argparse
 import json
 import math
-import sys
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Sequence
 
@@ -28,12 +22,13 @@ import trimesh
 from usl.data.frames import FrameData
 from usl.engine.eval_model import ModelPredictor, load_checkpoint_model
 from usl.engine.eval_types import EvalInput
+from usl.engine.gltf_scene import object_meshes, prediction_scene
+from usl.engine.predict_cli import FORMATS
 from usl.engine.visualize import draw_boxes, palette, render_overlay, write_png
-from usl.geometry.cameras import intrinsics_from_fov, opencv_to_opengl_camera
+from usl.geometry.cameras import intrinsics_from_fov
 from usl.model.outputs import ObjectPredictions
 from usl.records import UslError
 
-FORMATS = ("glb", "obj", "ply")
 Detect = Callable[[FrameData], ObjectPredictions]
 
 
@@ -93,30 +88,33 @@ def image_frame(image: np.ndarray, K: torch.Tensor, name: str) -> FrameData:
     )
 
 
-def object_names(pred: ObjectPredictions, categories: Sequence[str]) -> list[str]:
-    return [f"{n:02d}_{categories[int(l)].replace(' ', '_')}" for n, l in enumerate(pred.labels.tolist())]
+@dataclass
+class ImageResult:
+    """What ``predict_images`` made of one image."""
+
+    files: list[Path] = field(default_factory=list)
+    num_objects: int = 0  # detections at or above the threshold
+    best_score: float | None = None  # highest detection score of all (None: no detection at all)
 
 
-def mesh_scene(pred: ObjectPredictions, categories: Sequence[str], axes: str = "opencv") -> trimesh.Scene:
-    """A trimesh Scene with one named, coloured node per object."""
-    flip = opencv_to_opengl_camera()[:3, :3].numpy() if axes == "opengl" else np.eye(3)
-    faces = pred.faces.cpu().numpy()
-    scene = trimesh.Scene()
-    for name, verts, color in zip(object_names(pred, categories), pred.verts.cpu().double().numpy(), palette(len(pred))):
-        mesh = trimesh.Trimesh(verts @ flip.T, faces, process=False)
-        mesh.visual.vertex_colors = np.array([*color, 255], dtype=np.uint8)
-        scene.add_geometry(mesh, node_name=name, geom_name=name)
-    return scene
-
-
-def write_meshes(scene: trimesh.Scene, stem: Path, formats: Sequence[str]) -> list[Path]:
+def write_meshes(pred: ObjectPredictions, categories: Sequence[str], image: np.ndarray, K: np.ndarray, stem: Path,
+                 formats: Sequence[str], axes: str) -> list[Path]:
+    """GLB and HTML hold the whole scene (objects, camera, image plane); OBJ and PLY the objects only."""
     written = []
     for fmt in formats:
         path = stem.with_suffix(f".{fmt}")
-        if fmt == "ply":
-            trimesh.util.concatenate(list(scene.dump())).export(path)
+        if fmt in ("glb", "html"):
+            scene = prediction_scene(pred, categories, image, K, axes)
+            if fmt == "glb":
+                scene.export(path)
+            else:
+                from trimesh.viewer.notebook import scene_to_html  # three.js bundled into the page: no network
+
+                path.write_text(scene_to_html(scene))
+        elif fmt == "ply":  # a PLY holds one mesh: all objects merged, each with its own vertex colour
+            trimesh.util.concatenate(list(object_meshes(pred, categories, axes).dump())).export(path)
         else:
-            scene.export(path)
+            object_meshes(pred, categories, axes).export(path)
         written.append(path)
     return written
 
@@ -124,29 +122,31 @@ def write_meshes(scene: trimesh.Scene, stem: Path, formats: Sequence[str]) -> li
 def predict_images(
     detect: Detect, image_paths: Sequence[str | Path], out_dir: str | Path, categories: Sequence[str],
     K: np.ndarray | None = None, fov_deg: float | None = None, formats: Sequence[str] = ("glb",),
-    score_threshold: float = 0.5, axes: str = "opencv", opencv_k: bool = False,
-) -> dict[str, list[Path]]:
-    """Run ``detect`` on each image and write meshes and overlays; returns the files per image."""
+    score_threshold: float = 0.5, axes: str = "gltf", opencv_k: bool = False,
+) -> dict[str, ImageResult]:
+    """Run ``detect`` on each image and write meshes and overlays; returns what was made per image."""
     bad = [f for f in formats if f not in FORMATS]
     if bad:
         raise UslError(f"unknown mesh format(s) {bad}; choose from {', '.join(FORMATS)}")
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     images = [(Path(p), read_image(p)) for p in image_paths]  # fail on a bad path before any work
-    written: dict[str, list[Path]] = {}
+    written: dict[str, ImageResult] = {}
     stems: set[str] = set()
     for path, image in images:
         stem = path.stem if path.stem not in stems else f"{path.stem}_{len(stems)}"
         stems.add(stem)
         frame = image_frame(image, camera_for(image, K, fov_deg, opencv_k), stem)
         pred = detect(frame).to("cpu")
+        best = float(pred.scores.max()) if len(pred) else None
         pred = pred.select(pred.scores >= score_threshold)
-        files = write_meshes(mesh_scene(pred, categories, axes), out / stem, formats) if len(pred) else []
+        K_image = frame.K.double().numpy()
+        files = write_meshes(pred, categories, image, K_image, out / stem, formats, axes) if len(pred) else []
         colors = palette(len(pred))
         overlay = render_overlay(image, pred.verts, pred.faces, frame.K, colors)
         texts = [f"{categories[int(l)]} {float(s):.2f}" for l, s in zip(pred.labels.tolist(), pred.scores.tolist())]
         files.append(write_png(out / f"{stem}_overlay.png", draw_boxes(overlay, pred.boxes, texts, colors)))
-        written[str(path)] = files
+        written[str(path)] = ImageResult(files, len(pred), best)
     return written
 
 
@@ -155,42 +155,3 @@ def model_detector(checkpoint: str | Path, device: str) -> tuple[Detect, list[st
     model, config = load_checkpoint_model(checkpoint, device)
     predictor = ModelPredictor(model, int(config.data.max_size), "detections")
     return (lambda frame: predictor([EvalInput(frame, {})])[0]), list(config.model.categories)
-
-
-def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
-    p = argparse.ArgumentParser(prog="usl-predict", description=__doc__.split("\n\n")[0])
-    p.add_argument("images", nargs="+", help="input image file(s)")
-    p.add_argument("--checkpoint", required=True, help="checkpoint file or training run folder")
-    camera = p.add_mutually_exclusive_group(required=True)
-    camera.add_argument("--K", dest="k_file", help="3x3 intrinsics for the images' resolution (text or JSON)")
-    camera.add_argument("--fov", type=float, help="horizontal field of view in degrees (centred principal point)")
-    p.add_argument("--opencv-k", action="store_true", help="K puts pixel centres at integers (OpenCV): shift by +0.5")
-    p.add_argument("--out", default="predictions", help="output folder")
-    p.add_argument("--formats", default="glb", help=f"comma-separated mesh formats from {', '.join(FORMATS)}")
-    p.add_argument("--score-threshold", type=float, default=0.5, help="keep detections scoring at least this")
-    p.add_argument("--axes", default="opencv", choices=("opencv", "opengl"), help="coordinate axes of the mesh files")
-    p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
-    return p.parse_args(argv)
-
-
-def main(argv: Sequence[str] | None = None) -> int:
-    args = parse_args(argv)
-    try:
-        K = read_intrinsics(args.k_file) if args.k_file else None
-        formats = [f.strip() for f in args.formats.split(",") if f.strip()]
-        missing = [p for p in args.images if not Path(p).is_file()]
-        if missing:  # checked before the model loads; predict_images decodes them all before any work
-            raise UslError(f"image {missing[0]} does not exist" + (f" (and {len(missing) - 1} more)" if len(missing) > 1 else ""))
-        detect, categories = model_detector(args.checkpoint, args.device)
-        written = predict_images(detect, args.images, args.out, categories, K, args.fov, formats,
-                                 args.score_threshold, args.axes, args.opencv_k)
-    except UslError as exc:
-        print(f"usl-predict: error: {exc}", file=sys.stderr)
-        return 2
-    for image, files in written.items():
-        print(f"{image}: {', '.join(str(f) for f in files)}")
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -12,7 +12,7 @@ import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Mapping, Sequence
 
 from usl.engine.eval_summary import PredictorSummary
 
@@ -100,16 +100,24 @@ def json_safe(value: Any) -> Any:
     return value
 
 
-def write_report(out_dir: str | Path, header: dict[str, Any], summaries: Sequence[PredictorSummary], rows: Sequence[dict[str, Any]], layout: str) -> dict[str, Path]:
-    """Write ``metrics.json``, ``objects.jsonl`` and ``table.md`` into ``out_dir``; returns their paths."""
+def write_report(
+    out_dir: str | Path, header: dict[str, Any], summaries: Sequence[PredictorSummary], rows: Sequence[dict[str, Any]],
+    layout: str, links: Mapping[str, str] | None = None,
+) -> dict[str, Path]:
+    """Write ``metrics.json``, ``objects.jsonl`` and ``table.md`` into ``out_dir``; returns their paths.
+
+    ``links``: title -> path relative to ``out_dir`` (pictures index, training curves), listed under
+    the table and in ``metrics.json``."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     paths = {"metrics": out / "metrics.json", "objects": out / "objects.jsonl", "table": out / "table.md"}
-    document = {**header, "table_layout": layout, "predictors": [s.as_dict() for s in summaries]}
+    links = dict(links or {})
+    document = {**header, "table_layout": layout, "links": links, "predictors": [s.as_dict() for s in summaries]}
     paths["metrics"].write_text(json.dumps(json_safe(document), indent=1) + "\n")
     with open(paths["objects"], "w") as f:
         for row in rows:
             f.write(json.dumps(json_safe(row)) + "\n")
     title = f"# {header.get('dataset', 'dataset')} / {header.get('split', '')}: {header.get('num_input_views', 0)} input views\n\n"
-    paths["table"].write_text(title + markdown_table(summaries, layout))
+    footer = "".join(f"\n{name.capitalize()}: [{target}]({target})\n" for name, target in links.items())
+    paths["table"].write_text(title + markdown_table(summaries, layout) + footer)
     return paths

@@ -14,8 +14,8 @@ CSV_NAME = "metrics.csv"
 
 
 class RunLog:
-    def __init__(self, run_dir: Path, resume_iteration: int | None = None):
-        self.path = run_dir / CSV_NAME
+    def __init__(self, run_dir: Path, resume_iteration: int | None = None, name: str = CSV_NAME):
+        self.path = run_dir / name
         self.fieldnames: list[str] | None = None
         self.rows: list[dict[str, str]] = []
         if resume_iteration is not None and self.path.is_file():
@@ -61,7 +61,7 @@ def _tensorboard(run_dir: Path):
     return SummaryWriter(str(run_dir / "tensorboard"))
 
 
-def read_metrics(run_dir: str | Path) -> list[dict[str, float]]:
+def read_metrics(run_dir: str | Path, name: str = CSV_NAME) -> list[dict[str, float]]:
     """The CSV log as floats (empty cells skipped); for tests, notebooks and the report."""
-    with open(Path(run_dir) / CSV_NAME, newline="") as f:
+    with open(Path(run_dir) / name, newline="") as f:
         return [{k: float(v) for k, v in row.items() if v not in ("", None)} for row in csv.DictReader(f)]

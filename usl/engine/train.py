@@ -1,42 +1,26 @@
-"""``usl-train``: train USL from a recipe, on CPU, one GPU, or many GPUs/machines with torchrun.
-
-    usl-train --config tiny data.root=/data/scene_shapes_small
-    usl-train --config hypersim --output-dir runs/hs data.root=/data/hypersim \\
-        model.detector.backbone.resnet.weights=/weights/R-50.pth
-    torchrun --nproc_per_node 8 -m usl.engine.train --config hypersim data.root=...
-    usl-train --resume --output-dir runs/hs            # continue exactly where it stopped
-
-The run folder gets ``config.yaml`` (the resolved config), ``metrics.csv`` (and TensorBoard
-events when tensorboard is installed) and ``checkpoints/`` (see ``usl.engine.checkpoint``).
-"""
+"""The training loop of ``usl-train`` (command line: ``usl.engine.train_cli``, which also runs
+``torchrun -m usl.engine.train``): data, guarded steps, logs, checkpoints, exact resume."""
 from __future__ import annotations
 
-import argparse
 import resource
 import sys
 import time
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 import torch
 from tqdm import tqdm
 
-from usl.config import Config, ConfigError, config_from_dict, deep_merge, load_config, parse_overrides, save_config, to_dict
+from usl.config import Config, ConfigError, save_config, to_dict
 from usl.data import CategoryIndex, MultiViewDataset, ShardedBatchSampler, build_train_loader
 from usl.model.usl_model import USLModel
-from usl.records import RecordsDataset, UslError
+from usl.records import RecordsDataset
 
-from .checkpoint import (
-    CHECKPOINT_DIR,
-    CheckpointError,
-    checkpoint_config,
-    read_checkpoint,
-    rng_state,
-    set_rng_state,
-    write_run_checkpoint,
-)
-from .distributed import DistInfo, all_gather_objects, barrier, init_distributed, shutdown_distributed
+from .checkpoint import CheckpointError, rng_state, set_rng_state, write_run_checkpoint
+from .distributed import DistInfo, all_gather_objects, barrier
+from .feedback import TrainingFeedback
 from .run_log import RunLog
+from .train_cli import main  # noqa: F401  (usl-train's entry point: parses before torch loads)
 from .train_step import TrainStep
 
 COMMAND = "usl-train"
@@ -104,10 +88,12 @@ class Trainer:
         if resume is not None:
             self.load_state(resume)
         self.log: RunLog | None = None
+        self.feedback: TrainingFeedback | None = None  # log.txt, validation, curves.png, summary
         if info.is_main:
             run_dir.mkdir(parents=True, exist_ok=True)
             save_config(cfg, run_dir / "config.yaml")
             self.log = RunLog(run_dir, self.iteration if resume is not None else None)
+            self.feedback = TrainingFeedback(cfg, run_dir, self.model, self.iteration, resume is not None)
 
     @property
     def model(self) -> USLModel:
@@ -165,6 +151,8 @@ class Trainer:
                         meter = Meter()
                     if self.iteration % cfg.train.checkpoint_every == 0 or self.iteration == cfg.optim.max_iter:
                         self.save()
+                    if self.feedback is not None:
+                        self.feedback.after_step(self.iteration)
                     if self.iteration >= cfg.optim.max_iter:
                         break
                 else:
@@ -173,6 +161,8 @@ class Trainer:
             bar.close()
             if self.log is not None:
                 self.log.close()
+            if self.feedback is not None:
+                self.feedback.close(self.iteration)
 
     def write_log(self, meter: Meter, bar: tqdm) -> None:
         """One CSV row: means over the interval's steps, averaged over ranks (keys a rank lacks,
@@ -188,6 +178,8 @@ class Trainer:
         row.update(epoch=self.epoch, lr=self.step.optimizer.param_groups[0]["lr"], peak_mem_mb=self.peak_memory_mb())
         assert self.log is not None
         self.log.write(self.iteration, row)
+        if self.feedback is not None:
+            self.feedback.log_row(self.iteration, row)
         bar.set_postfix(loss=f"{row['loss']:.4f}", l3d=f"{row.get('l3d', 0.0):.4f}")
 
     def peak_memory_mb(self) -> float:
@@ -196,51 +188,5 @@ class Trainer:
         return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # Linux reports KiB
 
 
-# ---------------------------------------------------------------------------------- CLI
-def parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog=COMMAND, description=__doc__.split("\n\n")[0])
-    p.add_argument("--config", help="recipe name (tiny, scene_shapes, hypersim, scannet) or a YAML file")
-    p.add_argument("--output-dir", type=Path, help="run folder (default: runs/<config name>)")
-    p.add_argument("--resume", nargs="?", const="", default=None, metavar="CHECKPOINT",
-                   help="continue from CHECKPOINT, or from the run folder's newest checkpoint")
-    p.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides, e.g. optim.lr=0.01")
-    return p
-
-
-def resolve_run(args: argparse.Namespace) -> tuple[Config, Path, dict[str, Any] | None]:
-    """The config, run folder and (when resuming) checkpoint payload the arguments ask for."""
-    if args.resume is not None:
-        source = args.resume or args.output_dir
-        if not source:
-            raise ConfigError("--resume needs a checkpoint path or --output-dir")
-        payload = read_checkpoint(source)
-        stored = checkpoint_config(payload)  # --config is ignored: a resumed run keeps its recipe
-        cfg = config_from_dict(deep_merge(to_dict(stored), parse_overrides(args.overrides)), where="overrides")
-        run_dir = args.output_dir or Path(payload["path"]).parent.parent
-        return cfg, Path(run_dir), payload
-    if not args.config:
-        raise ConfigError("give --config (a recipe name or YAML file), or --resume")
-    cfg = load_config(args.config, args.overrides)
-    run_dir = Path(args.output_dir or Path("runs") / cfg.name)
-    if (run_dir / CHECKPOINT_DIR).is_dir() and any((run_dir / CHECKPOINT_DIR).glob("model_*.pt")):
-        raise ConfigError(f"{run_dir} already holds checkpoints: pass --resume to continue it, or another --output-dir")
-    return cfg, run_dir, None
-
-
-def main(argv: Sequence[str] | None = None) -> int:
-    args = parser().parse_args(argv)
-    try:
-        cfg, run_dir, payload = resolve_run(args)
-        info = init_distributed(cfg.train.device)
-        try:
-            Trainer(cfg, run_dir, info, payload).train()
-        finally:
-            shutdown_distributed()
-    except (ConfigError, CheckpointError, UslError) as exc:
-        print(f"{COMMAND}: error: {exc}", file=sys.stderr)
-        return 2
-    return 0
-
-
-if __name__ == "__main__":
+if __name__ == "__main__":  # torchrun -m usl.engine.train ...
     sys.exit(main())

@@ -4,6 +4,8 @@
 * ``render_overlay``: predicted meshes rendered (hard z-buffer, shaded by surface normals from the
   depth map) over an image; used by ``usl-predict`` and the evaluation pictures.
 * ``mask_pair``: a view's true masks next to the predicted meshes rendered into that view.
+* ``legend``: a panel of colour swatches and one line of text each (which object is which, and
+  how it scored).
 * ``birds_eye``: the layout seen from above the input camera: the x (right) / z (forward) plane of
   the input camera frame, objects as filled footprints (convex hull of their vertices), true
   objects outlined in white when known, cameras as wedges (input camera in yellow). The input
@@ -163,6 +165,20 @@ def _draw_camera(canvas: np.ndarray, pose: np.ndarray, pix, length: float, color
     corners = np.array([[0, 0, 0], [-0.5, 0, 1], [0.5, 0, 1]]) * length
     world = corners @ pose[:3, :3].T + pose[:3, 3]
     cv2.polylines(canvas, [pix(world[:, [0, 2]])], True, color, 2, cv2.LINE_AA)
+
+
+def legend(entries: Sequence[tuple[tuple[int, int, int] | None, str]], height: int = 320, title: str = "") -> np.ndarray:
+    """A dark panel listing ``(colour, text)`` lines (colour None: plain text, no swatch)."""
+    lines = ([(None, title)] if title else []) + list(entries)
+    scale, step = 0.45, 20
+    width = 24 + max([cv2.getTextSize(text, FONT, scale, 1)[0][0] for _, text in lines] + [200])
+    canvas = np.full((max(height, step * len(lines) + 12), width, 3), 30, np.uint8)
+    for n, (color, text) in enumerate(lines):
+        y = 18 + n * step
+        if color is not None:
+            cv2.rectangle(canvas, (6, y - 11), (18, y + 1), color, -1)
+        cv2.putText(canvas, text, (24 if color is not None else 6, y), FONT, scale, (235, 235, 235), 1, cv2.LINE_AA)
+    return canvas
 
 
 def label(image: np.ndarray, text: str) -> np.ndarray:

@@ -1,5 +1,9 @@
 """Sharded Parquet multi-view records (DESIGN.md §3): schema, encoding, writing, reading (v1 and v2),
-validation, migration and COCO export."""
+validation, migration and COCO export.
+
+The reader (a torch ``IterableDataset``) is imported on first use, so tools that only write or
+check records, and every ``--help``, start without loading torch.
+"""
 from .encode import (
     SceneRecord,
     Skip,
@@ -20,7 +24,6 @@ from .encode import (
 )
 from .errors import UslError
 from .manifest import load_manifest
-from .reader import RecordsDataset, SceneStream, partition
 from .schema import SCHEMA_VERSION
 from .shards import ShardResult, ShardWriter
 
@@ -50,3 +53,13 @@ __all__ = [
     "object_row",
     "partition",
 ]
+
+_LAZY = {"RecordsDataset": "reader", "SceneStream": "reader", "partition": "reader"}
+
+
+def __getattr__(name: str):
+    if name in _LAZY:
+        from importlib import import_module
+
+        return getattr(import_module(f".{_LAZY[name]}", __name__), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

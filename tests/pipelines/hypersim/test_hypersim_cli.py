@@ -38,7 +38,7 @@ def test_a_second_run_resumes(inputs, tmp_path, capsys):
 
 
 def test_filters_stride_and_stuff_exclusion(inputs, tmp_path):
-    out = convert(inputs, tmp_path / "records", "--blacklist", "ai_002_001", "--frame-stride", "2",
+    out = convert(inputs, tmp_path / "records", "--blacklist", "ai_002_001", "--stride", "2",
                   "--exclude-categories", "stuff", "--resolution", "48x36")
     assert validate_dataset(out) == []
     assert load_manifest(out)["schema_version"] == 2 and (out / "frames" / "train").is_dir()

@@ -24,7 +24,7 @@ SENS_SCENE, EXPORTED_SCENE = "scene0001_00", "scene0002_00"
 
 def convert(synthetic, out, *extra: str) -> int:
     args = ["--out", str(out), "--quiet", "--scans-root", str(synthetic.scans), "--splits-dir", str(synthetic.splits),
-            "--stride", "1", "--size", "48x36"]
+            "--stride", "1", "--resolution", "48x36"]
     if "--masks" not in extra:  # later arguments win
         args += ["--detections", *map(str, synthetic.results), "--detection-images", str(synthetic.images)]
     return main(args + list(extra))
@@ -104,7 +104,7 @@ def test_exported_scan_gives_the_same_records(converted):
 
 def test_native_size_keeps_the_stored_jpeg_and_labels_give_ground_truth_tracks(synthetic, tmp_path):
     out = tmp_path / "native"
-    assert convert(synthetic, out, "--size", "native", "--splits", "train", "--masks", "scannet-labels",
+    assert convert(synthetic, out, "--resolution", "native", "--splits", "train", "--masks", "scannet-labels",
                    "--label-map", str(synthetic.labels), "--tracker", "source-ids") == 0
     assert validate_dataset(out) == []
     rows = RecordsDataset(out, "train").read_scene(SENS_SCENE)
