@@ -153,13 +153,13 @@ def test_gate_input_view_false_applies_l_xent_in_the_input_view_only(setup):
     centre = verts.mean(dim=1, keepdim=True)
     shrunk = centre + 0.4 * (verts - centre)  # input-view IoU ~0.16: the paper's gate keeps it out
     only_input = replace(sample, views=sample.views[:1])
-    ungated = replace(cfg.loss, gate_input_view=False)
+    paper, ungated = (replace(cfg.loss, gate_input_view=g, ignore_occluders=False) for g in (True, False))
     counts = [len(verts)]
-    assert multiview_silhouette_loss(shrunk, faces, [only_input], counts, cfg.loss).xent.item() == 0.0
+    assert multiview_silhouette_loss(shrunk, faces, [only_input], counts, paper).xent.item() == 0.0
     opened = multiview_silhouette_loss(shrunk, faces, [only_input], counts, ungated)
     assert opened.xent.item() > 0 and opened.stats["xent_gate"].item() == 1.0
     # the other views keep the gate: their pairs' gate fraction is the same either way
-    full = [multiview_silhouette_loss(shrunk, faces, [sample], counts, c).stats["xent_gate"] for c in (cfg.loss, ungated)]
+    full = [multiview_silhouette_loss(shrunk, faces, [sample], counts, c).stats["xent_gate"] for c in (paper, ungated)]
     input_share = counts[0] / sum(int(v.present.sum()) for v in sample.views)
     assert full[1].item() == pytest.approx(full[0].item() + input_share)
 
@@ -171,8 +171,10 @@ def test_ignore_occluders_scores_true_meshes_as_perfect_despite_occlusion(setup)
     for index in (0, 9):
         sample = dataset[SampleKey(index, 0)]
         verts, faces = _true_meshes(records, dataset, sample, index)
-        plain = multiview_silhouette_loss(verts, faces, [sample], [len(verts)], cfg.loss)
-        aware = multiview_silhouette_loss(verts, faces, [sample], [len(verts)], replace(cfg.loss, ignore_occluders=True))
+        plain, aware = (
+            multiview_silhouette_loss(verts, faces, [sample], [len(verts)], replace(cfg.loss, ignore_occluders=ignore))
+            for ignore in (False, True)
+        )
         assert aware.stats["xent_gate"].item() == 1.0
         assert aware.stats["l_xent"] < plain.stats["l_xent"]
         torch.testing.assert_close(aware.dist, plain.dist)  # l_dist is unchanged

@@ -110,3 +110,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     print(paths["table"].read_text())
     print(f"wrote {', '.join(str(p) for p in paths.values())}")
     return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

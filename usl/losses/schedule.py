@@ -20,8 +20,8 @@ class PiecewiseLinear:
     steps from 0, as the LR schedule does, so a resumed run continues on the same curve.
     """
 
-    iters: tuple[int, ...] = ()
-    values: tuple[float, ...] = ()
+    iters: tuple[int, ...] = ()  # knots: iterations, strictly increasing (none: the constant 1)
+    values: tuple[float, ...] = ()  # the factor at each knot (>= 0), linear in between
 
     def __post_init__(self) -> None:
         if len(self.iters) != len(self.values):
