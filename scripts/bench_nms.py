@@ -24,7 +24,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from usl.model.ops import batched_nms, nms  # noqa: E402  (no compiled torch extension: imports beside any torchvision)
-from usl.model.ops.nms import _pure_torch_batched_nms, _pure_torch_nms  # noqa: E402
+from usl.model.ops.nms import _TORCHVISION, _pure_torch_batched_nms, _pure_torch_nms  # noqa: E402
 
 
 def detector_like_boxes(count: int, generator: torch.Generator, size: float = 1024.0):
@@ -59,16 +59,6 @@ def timed(fn, device: torch.device, repeats: int) -> float:
     return statistics.median(times)
 
 
-def torchvision_ops():
-    try:
-        import torchvision.ops as ops
-
-        ops.nms(torch.zeros(1, 4), torch.zeros(1), 0.5)
-        return ops
-    except Exception:  # not installed, or its compiled kernels do not load beside this torch
-        return None
-
-
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--sizes", type=int, nargs="+", default=[1000, 5000, 20000])
@@ -80,7 +70,7 @@ def main() -> None:
     args = p.parse_args()
     torch.set_num_threads(args.threads)
     device = torch.device(args.device)
-    tv = torchvision_ops()
+    tv = _TORCHVISION  # torchvision.ops if it imports and its kernels run beside this torch
     print(f"torch {torch.__version__}, torchvision {'ops loaded' if tv else 'not available'}, device {device}, "
           f"{args.threads} thread(s); {'wall' if device.type == 'cuda' else 'process CPU'} ms, median of {args.repeats}")
     print(f"{'case':>26} {'usl nms':>10} {'pure torch':>11} {'torchvision':>12} {'tv / usl':>9} {'same':>5}")
