@@ -24,7 +24,7 @@ if [[ "${1:-}" == "--cpu-smoke" ]]; then
   TESTS=(-m pytest -q -n 0 -rs tests/model/test_cuda.py)
   RASTER=(scripts/bench_rasterizer.py --device cpu --repeats 1 --threads 1)
   TRAIN=(scripts/bench_train.py --config tiny --device cpu --iters 1 --warmup 0 --size 64 64 --objects 2 --threads 1)
-  PREDICT=(scripts/bench_predict.py --device cpu --config scene_shapes --size 96 128 --objects 2 --images 1 --threads 1)
+  PREDICT=(scripts/bench_predict.py --device cpu --config scene_shapes --size 96 128 --objects 2 --images 1 --warmup 0 --threads 1)
   LIMITS=(300 300 300 300)
 else
   MODE=cuda
@@ -73,10 +73,10 @@ FIGURES[1]="$(grep -m 1 'render_dynamic' "$LOGS/step1.log" | sed 's/.*-> *//; s/
 run_step 2 "${TRAIN[@]}"
 train_ips="$(grep -m 1 'images/s:' "$LOGS/step2.log" | awk '{print $2}')"
 train_mem="$(grep -m 1 -E 'peak (GPU memory|process RSS)' "$LOGS/step2.log" | awk '{print $(NF-1), $NF}')"
-if [[ -n "$train_ips" ]]; then
+if [[ -n "$train_ips" && $MODE == cuda ]]; then
   FIGURES[2]="$train_ips images/s/GPU ($(awk -v x="$train_ips" 'BEGIN { printf "%.2f", x / (16 / 1.1 / 8) }')x paper's 1.82), peak $train_mem"
 else
-  FIGURES[2]=""
+  FIGURES[2]="${train_ips:+$train_ips images/s, peak $train_mem}"
 fi
 run_step 3 "${PREDICT[@]}"
 FIGURES[3]="$(grep -E '^ +(scene_shapes|hypersim|tiny|scannet) ' "$LOGS/step3.log" | awk '{printf "%s/%s %s fps; ", $1, $2, $4}')"

@@ -113,8 +113,8 @@ class ModelConfig:
                 raise ConfigError("set model.init_weights only (model.detector.backbone.resnet.weights is deprecated)")
             warnings.warn("model.detector.backbone.resnet.weights is deprecated: use model.init_weights", FutureWarning)
             self.init_weights, resnet.weights = resnet.weights, None
-        if resnet.stride_in_1x1 is None:  # the ResNet variant the init weights were trained as
-            resnet.stride_in_1x1 = bool(self.init_weights) and trained_stride_in_1x1(self.init_weights, self.init_format)
+        if resnet.stride_in_1x1 is None and self.init_weights:  # the ResNet variant the weights were trained as
+            resnet.stride_in_1x1 = trained_stride_in_1x1(self.init_weights, self.init_format)
 
 
 _SOFT = SoftRasterSettings()

@@ -213,7 +213,7 @@ def test_unknown_keys_shape_mismatches_and_gaps_are_errors_naming_the_key(tmp_pa
 def test_model_config_resolves_the_resnet_variant_and_forwards_the_old_key():
     assert ModelConfig(init_weights="/w/R-50.pkl").detector.backbone.resnet.stride_in_1x1 is True
     assert ModelConfig(init_weights="/w/resnet50.pth").detector.backbone.resnet.stride_in_1x1 is False
-    assert ModelConfig().detector.backbone.resnet.stride_in_1x1 is False
+    assert ModelConfig().detector.backbone.resnet.stride_in_1x1 is None  # built as v1.5 (torchvision)
     explicit = DetectorConfig()
     explicit.backbone.resnet.stride_in_1x1 = False
     assert ModelConfig(detector=explicit, init_weights="/w/R-50.pkl").detector.backbone.resnet.stride_in_1x1 is False
