@@ -13,6 +13,7 @@ import copy
 import dataclasses
 import types
 import typing
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping, Sequence
@@ -21,6 +22,8 @@ import yaml
 
 from usl.losses import LossWeights, PiecewiseLinear
 from usl.model.detector import DetectorConfig
+from usl.model.pretrained import FORMATS as INIT_FORMATS
+from usl.model.pretrained import trained_stride_in_1x1
 from usl.render import SoftRasterSettings
 
 CONFIG_DIR = Path(__file__).resolve().parent / "configs"
@@ -100,6 +103,22 @@ class ModelConfig:
     # Filled from the records manifest when empty (categories in data_specs order, layout ranges).
     categories: tuple[str, ...] = ()
     layout_range: LayoutRange = field(default_factory=LayoutRange)
+    # Local pretrained checkpoint for the whole detector (never downloaded): a torchvision
+    # maskrcnn_resnet50_fpn or resnet50 state dict, or a detectron2 model zoo / MSRA R-50 .pkl
+    # (usl.model.pretrained). "auto" tells the formats apart by suffix (.pkl: detectron2).
+    init_weights: str = ""
+    init_format: str = "auto"  # "auto" | "torchvision" | "detectron2"
+
+    def __post_init__(self) -> None:
+        _check_choice("model.init_format", self.init_format, INIT_FORMATS)
+        resnet = self.detector.backbone.resnet
+        if resnet.weights:  # the old backbone-only key, forwarded so old commands keep working
+            if self.init_weights and self.init_weights != resnet.weights:
+                raise ConfigError("set model.init_weights only (model.detector.backbone.resnet.weights is deprecated)")
+            warnings.warn("model.detector.backbone.resnet.weights is deprecated: use model.init_weights", FutureWarning)
+            self.init_weights, resnet.weights = resnet.weights, None
+        if resnet.stride_in_1x1 is None and self.init_weights:  # the ResNet variant the weights were trained as
+            resnet.stride_in_1x1 = trained_stride_in_1x1(self.init_weights, self.init_format)
 
 
 _SOFT = SoftRasterSettings()

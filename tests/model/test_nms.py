@@ -3,6 +3,9 @@ import torch
 
 from detection_oracles import nms_loop, torchvision_ops
 from usl.model.ops import batched_nms, nms
+import importlib
+
+NMS = importlib.import_module("usl.model.ops.nms")
 
 TV = torchvision_ops()
 
@@ -48,6 +51,36 @@ def test_float32_boxes_and_long_output():
     assert keep.tolist() == nms_loop(boxes.double(), scores.double(), 0.5)
 
 
+@pytest.mark.parametrize("count", [0, 1, 2, 150, 400])
+@pytest.mark.parametrize("threshold", [-0.1, 0.0, 0.3, 0.5, 0.7, 1.0])
+def test_pure_torch_graph_path_equals_the_compiled_loop_and_the_reference(count, threshold):
+    generator = torch.Generator().manual_seed(20 + count)
+    boxes = random_boxes(generator, count, spread=40.0, dtype=torch.float32)
+    if count > 2:  # degenerate, inverted, NaN and infinite boxes never suppress (IoU 0 or NaN)
+        boxes[0] = torch.tensor([5.0, 5.0, 5.0, 9.0])
+        boxes[1] = torch.tensor([9.0, 9.0, 3.0, 3.0])
+        boxes[2, 0] = float("nan")
+        boxes[3, 2] = float("inf")
+    scores = torch.randint(0, 8, (count,), generator=generator).float()
+    groups = torch.randint(0, 3, (count,), generator=generator)
+    expected = nms_loop(boxes, scores, threshold) if count <= 150 else nms(boxes, scores, threshold).tolist()
+    assert NMS._pure_torch_nms(boxes, scores, threshold).tolist() == expected
+    assert nms(boxes, scores, threshold).tolist() == expected
+    pure = NMS._pure_torch_batched_nms(boxes, scores, groups, threshold)
+    assert pure.tolist() == batched_nms(boxes, scores, groups, threshold).tolist()
+    if count <= 150:
+        assert pure.tolist() == nms_loop(boxes, scores, threshold, groups)
+
+
+def test_threshold_is_compared_as_a_real_number():
+    # float32(0.3) lies above 0.3: an IoU of exactly that value exceeds the threshold (torchvision's test)
+    iou = torch.tensor([0.3, 0.5, 0.7], dtype=torch.float32)
+    assert NMS._above(iou, 0.3).tolist() == [True, True, True]
+    assert NMS._above(iou, 0.5).tolist() == [False, False, True]
+    assert NMS._above(iou, 0.7).tolist() == [False, False, False]  # float32(0.7) lies below 0.7
+    assert NMS._above(iou.double(), 0.3).tolist() == [True, True, True]
+
+
 @pytest.mark.skipif(TV is None, reason="torchvision ops do not run with this torch")
 def test_equals_torchvision():
     generator = torch.Generator().manual_seed(2)
@@ -56,3 +89,12 @@ def test_equals_torchvision():
     groups = torch.randint(0, 5, (500,), generator=generator)
     assert torch.equal(nms(boxes, scores, 0.6), TV.nms(boxes, scores, 0.6))
     assert torch.equal(batched_nms(boxes, scores, groups, 0.6), TV.batched_nms(boxes, scores, groups, 0.6))
+    # What nms() dispatches to on CUDA: torchvision with our tie order, proven equal on the probe set.
+    tied = torch.randint(0, 10, (500,), generator=generator).float()
+    for threshold in (0.3, 0.5, 0.7):
+        assert torch.equal(NMS._torchvision_nms(boxes, tied, threshold), NMS._pure_torch_nms(boxes, tied, threshold))
+        assert torch.equal(
+            NMS._torchvision_batched_nms(boxes, tied, groups, threshold),
+            NMS._pure_torch_batched_nms(boxes, tied, groups, threshold),
+        )
+    assert NMS._agrees_with_torchvision(torch.device("cpu"))

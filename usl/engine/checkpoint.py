@@ -96,7 +96,7 @@ def load_model(checkpoint_path: str | Path, device: str | torch.device = "cpu"):
 
     payload = read_checkpoint(checkpoint_path)
     config = checkpoint_config(payload)
-    model = USLModel(config.model, config.loss)
+    model = USLModel(config.model, config.loss, load_init_weights=False)  # the checkpoint holds every weight
     try:
         model.load_state_dict(payload["model"])
     except RuntimeError as exc:

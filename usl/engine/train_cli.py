@@ -2,7 +2,7 @@
 
     usl-train --config tiny data.root=/data/scene_shapes_small
     usl-train --config hypersim --out runs/hs data.root=/data/hypersim \\
-        model.detector.backbone.resnet.weights=/weights/R-50.pth
+        model.init_weights=/weights/model_final_f10217.pkl
     torchrun --nproc_per_node 8 -m usl.engine.train --config hypersim data.root=...
     usl-train --resume --out runs/hs                    # continue exactly where it stopped
     usl-train --resume --out runs/hs optim.max_iter=90000

@@ -27,6 +27,7 @@ from usl.model.detector import ImageList, MaskRCNN, MultiScaleRoIAlign
 from usl.model.heads import LayoutHead, LayoutPrediction, ShapeHead, ShapePrediction
 from usl.model.multiview_loss import multiview_silhouette_loss, shape_regularizers
 from usl.model.outputs import ObjectPredictions
+from usl.model.pretrained import init_detector, print_report
 
 Tensor = torch.Tensor
 MODES = ("gt_boxes", "detections")
@@ -43,7 +44,9 @@ class ObjectOutputs:
 
 
 class USLModel(nn.Module):
-    def __init__(self, cfg: ModelConfig, loss_cfg: LossConfig | None = None):
+    """``load_init_weights=False`` skips ``cfg.init_weights``, for callers that load a full state dict next."""
+
+    def __init__(self, cfg: ModelConfig, loss_cfg: LossConfig | None = None, load_init_weights: bool = True):
         super().__init__()
         if not cfg.categories:
             raise ValueError("ModelConfig.categories is empty: fill it from the dataset (usl.engine.train does)")
@@ -67,6 +70,8 @@ class USLModel(nn.Module):
         self.layout_head = LayoutHead(in_channels, len(cfg.categories), cfg.layout, cfg.layout_range)
         feature = shapes[cfg.shape.feature]
         self.shape_head = ShapeHead(feature.channels, feature.stride, cfg.shape)
+        if cfg.init_weights and load_init_weights:
+            print_report(init_detector(self.detector, cfg.init_weights, cfg.init_format))
         self.register_buffer("pixel_mean", torch.tensor(IMAGENET_MEAN).view(3, 1, 1), persistent=False)
         self.register_buffer("pixel_std", torch.tensor(IMAGENET_STD).view(3, 1, 1), persistent=False)
         if not self.loss_cfg.weights.mu_2d:

@@ -4,7 +4,6 @@ from .fpn import FPN
 from .norm import FrozenBatchNorm2d, freeze_batch_norms
 from .registry import BACKBONES, Registry
 from .resnet import IMAGENET_MEAN, IMAGENET_STD, ResNet
-from .weights import WeightsError, load_weights, read_state_dict
 
 __all__ = [
     "BACKBONES",
@@ -19,10 +18,7 @@ __all__ = [
     "ResNetConfig",
     "ResNetFPN",
     "ShapeSpec",
-    "WeightsError",
     "build_backbone",
     "build_resnet_fpn",
     "freeze_batch_norms",
-    "load_weights",
-    "read_state_dict",
 ]

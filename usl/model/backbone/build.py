@@ -10,7 +10,6 @@ from torch import nn
 from .fpn import FPN
 from .registry import BACKBONES
 from .resnet import STAGE_OUTPUTS, ResNet
-from .weights import load_weights
 
 Tensor = torch.Tensor
 
@@ -29,7 +28,10 @@ class ResNetConfig:
     base_channels: int = 64  # width of the stem; stages have 1x, 2x, 4x, 8x (x4 for bottlenecks)
     norm: str = "FrozenBN"  # "BN" or "FrozenBN"
     freeze_at: int = 2  # 0: train all; 1: freeze stem; k: also freeze the first k-1 stages
-    weights: Optional[str] = None  # local torchvision-format state dict, e.g. resnet50-0676ba61.pth
+    # Bottleneck stride on the first 1x1 conv (original MSRA ResNet, detectron2 weights) instead of
+    # the 3x3 (v1.5, torchvision). None: as the model's init weights need (ModelConfig resolves it).
+    stride_in_1x1: Optional[bool] = None
+    weights: Optional[str] = None  # deprecated: moved to model.init_weights (ModelConfig forwards it)
 
 
 @dataclass
@@ -77,9 +79,14 @@ class ResNetFPN(nn.Module):
 
 @BACKBONES.register("resnet_fpn")
 def build_resnet_fpn(cfg: BackboneConfig) -> ResNetFPN:
-    resnet = ResNet(cfg.resnet.depth, cfg.resnet.base_channels, cfg.resnet.norm)
     if cfg.resnet.weights:
-        load_weights(resnet, cfg.resnet.weights)
+        raise ValueError(
+            f"backbone.resnet.weights={cfg.resnet.weights!r} no longer loads here: initialise the whole model "
+            "with model.init_weights (usl.model.pretrained.init_detector)"
+        )
+    resnet = ResNet(
+        cfg.resnet.depth, cfg.resnet.base_channels, cfg.resnet.norm, stride_in_1x1=bool(cfg.resnet.stride_in_1x1)
+    )
     resnet.freeze(cfg.resnet.freeze_at)
     fpn = FPN(resnet.stage_channels, STAGE_OUTPUTS, cfg.fpn.out_channels, cfg.fpn.add_p6)
     return ResNetFPN(resnet, fpn)

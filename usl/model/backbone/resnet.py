@@ -1,7 +1,7 @@
 """ResNet-18/34/50/101 with torchvision's module and parameter names.
 
-Same names mean a torchvision ``resnet50-*.pth`` state dict loads with strict key
-matching (see :mod:`.weights`). ``base_channels`` scales every stage's width (64 for
+Same names mean a torchvision ``resnet50-*.pth`` state dict maps one to one (see
+:mod:`usl.model.pretrained`). ``base_channels`` scales every stage's width (64 for
 the real networks; e.g. 16 for a tiny CPU test network); names do not change.
 """
 from __future__ import annotations
@@ -31,8 +31,10 @@ def conv1x1(in_channels: int, out_channels: int, stride: int = 1) -> nn.Conv2d:
 class BasicBlock(nn.Module):
     expansion = 1
 
-    def __init__(self, inplanes: int, planes: int, stride: int, downsample: Optional[nn.Module], norm: str):
-        super().__init__()
+    def __init__(
+        self, inplanes: int, planes: int, stride: int, downsample: Optional[nn.Module], norm: str, stride_in_1x1: bool = False
+    ):
+        super().__init__()  # stride_in_1x1 only matters for bottlenecks; a basic block has no 1x1 conv
         self.conv1 = conv3x3(inplanes, planes, stride)
         self.bn1 = make_norm(norm, planes)
         self.relu = nn.ReLU(inplace=True)
@@ -48,15 +50,25 @@ class BasicBlock(nn.Module):
 
 
 class Bottleneck(nn.Module):
-    """ResNet v1.5 bottleneck: the stride sits on the 3x3 conv, as in torchvision."""
+    """ResNet bottleneck. v1.5 (torchvision) puts the stride on the 3x3 conv; the original
+    MSRA ResNet (detectron2's ``STRIDE_IN_1X1``, its ImageNet and COCO weights) on the first 1x1."""
 
     expansion = 4
 
-    def __init__(self, inplanes: int, planes: int, stride: int, downsample: Optional[nn.Module], norm: str):
+    def __init__(
+        self,
+        inplanes: int,
+        planes: int,
+        stride: int,
+        downsample: Optional[nn.Module],
+        norm: str,
+        stride_in_1x1: bool = False,
+    ):
         super().__init__()
-        self.conv1 = conv1x1(inplanes, planes)
+        stride_1x1, stride_3x3 = (stride, 1) if stride_in_1x1 else (1, stride)
+        self.conv1 = conv1x1(inplanes, planes, stride_1x1)
         self.bn1 = make_norm(norm, planes)
-        self.conv2 = conv3x3(planes, planes, stride)
+        self.conv2 = conv3x3(planes, planes, stride_3x3)
         self.bn2 = make_norm(norm, planes)
         self.conv3 = conv1x1(planes, planes * self.expansion)
         self.bn3 = make_norm(norm, planes * self.expansion)
@@ -87,14 +99,24 @@ class ResNet(nn.Module):
     """torchvision-compatible ResNet; :meth:`features` gives the C2..C5 maps for detection.
 
     ``fc`` exists so classification checkpoints load strictly; detection never calls it.
+    ``stride_in_1x1`` selects the original MSRA bottleneck (see :class:`Bottleneck`): same
+    parameter shapes, different network, so it must match the weights' origin.
     """
 
-    def __init__(self, depth: int = 50, base_channels: int = 64, norm: str = "BN", num_classes: int = 1000):
+    def __init__(
+        self,
+        depth: int = 50,
+        base_channels: int = 64,
+        norm: str = "BN",
+        num_classes: int = 1000,
+        stride_in_1x1: bool = False,
+    ):
         super().__init__()
         if depth not in ARCHITECTURES:
             raise ValueError(f"unsupported ResNet depth {depth}; choose one of {sorted(ARCHITECTURES)}")
         block, layers = ARCHITECTURES[depth]
         self.depth = depth
+        self.stride_in_1x1 = stride_in_1x1
         self.inplanes = base_channels
         self.conv1 = nn.Conv2d(3, base_channels, kernel_size=7, stride=2, padding=3, bias=False)
         self.bn1 = make_norm(norm, base_channels)
@@ -115,9 +137,9 @@ class ResNet(nn.Module):
             downsample = nn.Sequential(
                 conv1x1(self.inplanes, planes * block.expansion, stride), make_norm(norm, planes * block.expansion)
             )
-        layers = [block(self.inplanes, planes, stride, downsample, norm)]
+        layers = [block(self.inplanes, planes, stride, downsample, norm, self.stride_in_1x1)]
         self.inplanes = planes * block.expansion
-        layers += [block(self.inplanes, planes, 1, None, norm) for _ in range(1, blocks)]
+        layers += [block(self.inplanes, planes, 1, None, norm, self.stride_in_1x1) for _ in range(1, blocks)]
         return nn.Sequential(*layers)
 
     def _init_weights(self) -> None:

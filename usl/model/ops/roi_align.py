@@ -83,20 +83,25 @@ def roi_align(
     if num_rois == 0:
         return input.new_zeros((0, channels, out_h, out_w), dtype=out_dtype)
     batch_index = rois[:, 0].long()
-    if int(batch_index.min()) < 0 or int(batch_index.max()) >= num_images:
-        raise ValueError(f"RoI batch indices must lie in [0, {num_images}), got {batch_index.unique().tolist()}")
-
     offset = 0.5 if aligned else 0.0
     x0, y0, x1, y1 = (rois[:, i] * spatial_scale - offset for i in range(1, 5))
     roi_w, roi_h = x1 - x0, y1 - y0
     if not aligned:
         roi_w, roi_h = roi_w.clamp(min=1.0), roi_h.clamp(min=1.0)
-    rows = _axis_samples(y0, roi_h, out_h, height, sampling_ratio)
-    cols = _axis_samples(x0, roi_w, out_w, width, sampling_ratio)
-
+    grid_h, grid_w = _grid(roi_h, out_h, sampling_ratio), _grid(roi_w, out_w, sampling_ratio)
+    # The only device-to-host transfer: the sizes every tensor shape below depends on.
+    sizes = torch.stack([roi_h, roi_w, grid_h.to(roi_h.dtype), grid_w.to(roi_h.dtype)], dim=1)
+    bounds = torch.stack([batch_index.min(), batch_index.max()]).to(sizes.dtype)
+    host = torch.cat([bounds, sizes.flatten()]).cpu().numpy().astype(np.float64)
+    if host[0] < 0 or host[1] >= num_images:
+        raise ValueError(f"RoI batch indices must lie in [0, {num_images}), got {batch_index.unique().tolist()}")
+    host_roi_h, host_roi_w, host_grid_h, host_grid_w = np.nan_to_num(host[2:].reshape(-1, 4)).T
+    rows = _axis_samples(y0, roi_h, out_h, height, grid_h, max(int(host_grid_h.max()), 1))
+    cols = _axis_samples(x0, roi_w, out_w, width, grid_w, max(int(host_grid_w.max()), 1))
+    window_h, window_w = _window_bound(host_roi_h, height), _window_bound(host_roi_w, width)
     chunks = [
-        _Chunk.build(index.to(input.device), batch_index, rows, cols, height, width)
-        for index in _plan_chunks(rows.length, cols.length, channels, max_chunk_elements)
+        _Chunk.build(index.to(input.device), batch_index, rows, cols, height, width, int(h), int(w))
+        for index, h, w in _plan_chunks(window_h, window_w, channels, max_chunk_elements)
     ]
     return _RoIAlignFunction.apply(input, chunks, (num_rois, out_h, out_w), compute_dtype).to(out_dtype)
 
@@ -128,20 +133,32 @@ class _AxisSamples:
     index: Tensor  # absolute feature row (or column) of each tap
     weight: Tensor  # bilinear weight / grid count; zero for invalid or padding taps
     start: Tensor  # (K,) first row of the window the RoI touches
-    length: Tensor  # (K,) number of rows of that window
 
     def take(self, chunk: Tensor) -> "_AxisSamples":
-        return _AxisSamples(self.index[chunk], self.weight[chunk], self.start[chunk], self.length[chunk])
+        return _AxisSamples(self.index[chunk], self.weight[chunk], self.start[chunk])
 
 
-def _axis_samples(start: Tensor, roi_size: Tensor, bins: int, size: int, sampling_ratio: int) -> _AxisSamples:
+def _grid(roi_size: Tensor, bins: int, sampling_ratio: int) -> Tensor:
+    """Samples per bin along one axis: fixed, or adaptive ``ceil(roi_size / bins)``."""
+    if sampling_ratio > 0:
+        return torch.full_like(roi_size, sampling_ratio, dtype=torch.long)
+    return torch.ceil(roi_size / bins).long().clamp(min=0)
+
+
+def _window_bound(roi_size: np.ndarray, size: int) -> np.ndarray:
+    """Upper bound of the feature rows an RoI's taps touch, from its size alone (host side).
+
+    Samples lie strictly inside ``[start, start + roi_size]`` and each takes its floor and the
+    next row, so at most ``ceil(roi_size) + 2`` rows, and never more than the map has.
+    """
+    return np.clip(np.ceil(np.maximum(roi_size, 0.0)) + 2, 1, size)
+
+
+def _axis_samples(
+    start: Tensor, roi_size: Tensor, bins: int, size: int, grid: Tensor, max_grid: int
+) -> _AxisSamples:
     """Sampling positions along one axis and their two bilinear taps (torchvision's rules)."""
     bin_size = roi_size / bins
-    if sampling_ratio > 0:
-        grid = torch.full_like(start, sampling_ratio, dtype=torch.long)
-    else:
-        grid = torch.ceil(roi_size / bins).long().clamp(min=0)
-    max_grid = max(int(grid.max()), 1)
     grid_f = grid.clamp(min=1).to(start.dtype)[:, None, None]
     bin_index = torch.arange(bins, device=start.device, dtype=start.dtype)[None, :, None]
     sample_index = torch.arange(max_grid, device=start.device)
@@ -161,10 +178,7 @@ def _axis_samples(start: Tensor, roi_size: Tensor, bins: int, size: int, samplin
 
     big = torch.iinfo(torch.long).max
     window_start = torch.where(valid, low, big).flatten(1).amin(dim=1)
-    window_end = torch.where(valid, high, -1).flatten(1).amax(dim=1)
-    has_taps = window_end >= 0
-    window_start = torch.where(has_taps, window_start, torch.zeros_like(window_start))
-    window_end = torch.where(has_taps, window_end, window_start)
+    window_start = torch.where(valid.flatten(1).any(dim=1), window_start, torch.zeros_like(window_start))
     # Padding/invalid taps point at the window start with zero weight, so they cost nothing.
     low = torch.where(valid, low, window_start[:, None, None])
     high = torch.where(valid, high, window_start[:, None, None])
@@ -172,18 +186,18 @@ def _axis_samples(start: Tensor, roi_size: Tensor, bins: int, size: int, samplin
         index=torch.cat([low, high], dim=2),
         weight=torch.cat([(1.0 - frac) * scale, frac * scale], dim=2),
         start=window_start,
-        length=window_end - window_start + 1,
     )
 
 
-def _plan_chunks(window_h: Tensor, window_w: Tensor, channels: int, max_elements: int) -> list[Tensor]:
+def _plan_chunks(
+    heights: np.ndarray, widths: np.ndarray, channels: int, max_elements: int
+) -> list[tuple[Tensor, int, int]]:
     """Group RoIs whose windows have similar height and width (geometric buckets), then
     split each group into chunks whose padded gather fits ``max_elements``.
 
     Bucketing each axis separately bounds the padding waste (tall and wide windows are
     never padded to each other's size) with a few dozen chunks in practice.
     """
-    heights, widths = window_h.cpu().numpy(), window_w.cpu().numpy()
     step = np.log(_BUCKET_GROWTH)
     buckets = np.ceil(np.log(heights) / step) * 4096 + np.ceil(np.log(widths) / step)
     order = np.argsort(buckets, kind="stable")
@@ -192,7 +206,10 @@ def _plan_chunks(window_h: Tensor, window_w: Tensor, channels: int, max_elements
     for group in np.split(order, starts[1:]):
         padded_cost = channels * int(heights[group].max()) * int(widths[group].max())
         size = max(1, max_elements // max(padded_cost, 1))
-        chunks += [torch.from_numpy(part) for part in np.split(group, range(size, len(group), size))]
+        chunks += [
+            (torch.from_numpy(part), heights[part].max(), widths[part].max())
+            for part in np.split(group, range(size, len(group), size))
+        ]
     return chunks
 
 
@@ -214,9 +231,12 @@ class _Chunk:
     col_matrix: Tensor  # (k, out_w, window_w)
 
     @classmethod
-    def build(cls, rois: Tensor, batch: Tensor, rows: _AxisSamples, cols: _AxisSamples, height: int, width: int):
+    def build(
+        cls, rois: Tensor, batch: Tensor, rows: _AxisSamples, cols: _AxisSamples, height: int, width: int,
+        window_h: int, window_w: int,
+    ):
+        """``window_h``/``window_w``: bounds of the chunk's windows (host ints, see ``_window_bound``)."""
         rows, cols = rows.take(rois), cols.take(rois)
-        window_h, window_w = int(rows.length.max()), int(cols.length.max())
         device = rois.device
         # Rows/columns past the image edge only occur where the matrices are zero; clamp them in.
         row_ids = (rows.start[:, None] + torch.arange(window_h, device=device)).clamp(max=height - 1)
