@@ -34,9 +34,9 @@ build "$DATA/heldout_seed1" 1 60
 rm -rf "$RUN" && mkdir -p "$RUN"
 # CPU time is the figure to compare on a shared machine; the progress bar goes to train.log
 /usr/bin/time -o "$RUN/train_time.txt" -f "training: %e s wall, %U s user CPU" \
-  python3 -m usl.engine.train --config "${USL_EXP_CONFIG:-tiny}" --output-dir "$RUN/train" data.root="$TRAIN" "$@" \
+  python3 -m usl.engine.train --config "${USL_EXP_CONFIG:-tiny}" --out "$RUN/train" data.root="$TRAIN" "$@" \
   > "$RUN/train.log" 2>&1 || { tail -5 "$RUN/train.log"; exit 1; }
 cat "$RUN/train_time.txt"
 # every split of the seed-1 build is unseen; its train split is the largest
-python3 -m usl.engine.evaluate "$DATA/heldout_seed1" --split train --input-views "${USL_EXP_EVAL_VIEWS:-every:4}" --checkpoint "$RUN/train" \
+python3 -m usl.engine.eval_cli "$DATA/heldout_seed1" --split train --input-views "${USL_EXP_EVAL_VIEWS:-every:4}" --checkpoint "$RUN/train" \
   --rows random,fixed,model --out "$RUN/eval" --pictures 4 --quiet | grep '^|'
