@@ -8,6 +8,7 @@ from .driver import (
     creator_from_args,
     fingerprint_from_args,
     run_build,
+    scratch_dir,
 )
 from .spill import frame_sink
 
@@ -21,4 +22,5 @@ __all__ = [
     "fingerprint_from_args",
     "frame_sink",
     "run_build",
+    "scratch_dir",
 ]

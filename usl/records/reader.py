@@ -16,9 +16,10 @@ import pyarrow.parquet as pq
 import torch
 from torch.utils.data import IterableDataset, get_worker_info
 
-from .errors import UslError
+from .errors import UslError, one_line
 from .manifest import load_manifest
 from .schema import read_metadata
+from .shards import VERIFY_MODES, open_shard
 
 
 @dataclass(frozen=True)
@@ -29,14 +30,12 @@ class SceneLocation:
 
 
 class _OpenShard:
-    """A Parquet file plus the first row of each row group, for reading a row range cheaply."""
+    """A verified Parquet file plus the first row of each row group, for reading a row range cheaply."""
 
-    def __init__(self, path: Path):
-        try:
-            self.file = pq.ParquetFile(path)
-        except Exception as exc:
-            raise UslError(f"{path}: cannot open Parquet shard ({exc})") from exc
-        read_metadata(self.file.schema_arrow, str(path))
+    def __init__(self, root: Path, info: dict[str, Any], verify: str):
+        self.path = root / info["file"]
+        self.file: pq.ParquetFile = open_shard(root, info, verify)
+        read_metadata(self.file.schema_arrow, str(self.path))
         meta = self.file.metadata
         self.group_starts = np.cumsum([0] + [meta.row_group(i).num_rows for i in range(meta.num_row_groups)])
 
@@ -50,18 +49,29 @@ class _OpenShard:
         base = int(self.group_starts[g0])
         return table.take([r - base for r in rows]).to_pylist()
 
+    def read_all(self) -> list[dict[str, Any]]:
+        try:
+            return self.file.read().to_pylist()
+        except Exception as exc:  # corrupt pages: checksum, decompression or decoding errors
+            raise UslError(f"{self.path}: cannot read ({one_line(exc)})") from exc
+
 
 class RecordsDataset:
     """One split of a dataset folder, indexed by scene.
 
     ``read_scene(scene_id)`` returns that scene's frame rows (dicts in schema v1, sorted by
     view_id); ``views`` picks rows by position within the scene. Decode fields with
-    ``usl.records.decode_image`` / ``decode_depth`` / ``decode_mask``.
+    ``usl.records.decode_image`` / ``decode_depth`` / ``decode_mask``, naming ``source(scene_id)``
+    in errors. Every shard is checked against the manifest when first opened: its size always, its
+    sha256 too with ``verify="sha256"``.
     """
 
-    def __init__(self, root: str | Path, split: str):
+    def __init__(self, root: str | Path, split: str, verify: str = "size"):
+        if verify not in VERIFY_MODES:
+            raise UslError(f"unknown shard verification {verify!r}; choose from {VERIFY_MODES}")
         self.root = Path(root)
         self.split = split
+        self.verify = verify
         self.manifest = load_manifest(self.root)
         if split not in self.manifest["splits"]:
             raise UslError(f"{self.root / 'manifest.json'}: no split {split!r} (has {sorted(self.manifest['splits'])})")
@@ -92,8 +102,12 @@ class RecordsDataset:
             info = self.shards[shard_pos][table]
             if info is None:
                 raise UslError(f"{self.root}: split {self.split!r} has no {table} table")
-            self._open[key] = _OpenShard(self.root / info["file"])
+            self._open[key] = _OpenShard(self.root, info, self.verify)
         return self._open[key]
+
+    def source(self, scene_id: str) -> str:
+        """The frames shard holding a scene, for error messages."""
+        return str(self.root / self.shards[self._location(scene_id).shard]["frames"]["file"])
 
     def num_views(self, scene_id: str) -> int:
         return self._location(scene_id).num_rows
@@ -112,7 +126,12 @@ class RecordsDataset:
         views = list(range(loc.num_rows)) if views is None else list(views)
         if any(not 0 <= v < loc.num_rows for v in views):
             raise IndexError(f"scene {scene_id!r} has {loc.num_rows} views; asked for {views}")
-        return shard.read_rows(loc.first_row, views, columns) if views else []
+        if not views:
+            return []
+        try:
+            return shard.read_rows(loc.first_row, views, columns)
+        except Exception as exc:  # corrupt pages: checksum, decompression or decoding errors
+            raise UslError(f"{shard.path}: scene {scene_id!r} views at positions {views}: cannot read ({one_line(exc)})") from exc
 
     def read_objects(self, scene_id: str) -> list[dict[str, Any]]:
         """3D ground-truth objects of a scene (empty if the dataset has none)."""
@@ -120,7 +139,7 @@ class RecordsDataset:
         if self.shards[loc.shard]["objects"] is None:
             return []
         if loc.shard not in self._objects_cache:
-            rows = self._shard(loc.shard, "objects").file.read().to_pylist()
+            rows = self._shard(loc.shard, "objects").read_all()
             by_scene: dict[str, list[dict[str, Any]]] = {}
             for row in rows:
                 by_scene.setdefault(row["scene_id"], []).append(row)

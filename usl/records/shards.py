@@ -1,8 +1,10 @@
 """Writing one shard atomically: streamed row groups into a temp file, checksum, then rename.
 
-A shard is a ``frames-NNNNN.parquet`` file and, when the dataset has 3D ground truth, a matching
-``objects-NNNNN.parquet``. Nothing appears under its final name until it is complete, so a killed
-build leaves only temp files, which the next run removes and redoes.
+A shard is a frames file and, when the dataset has 3D ground truth, a matching objects file (where
+they live: ``shard_paths``). Nothing appears under its final name until it is complete, so a killed
+build leaves only temp files named after their writer (``usl.records.tempfiles``), which a later
+run removes once it knows the writer is gone, and redoes. Pages carry CRC checksums that every
+reader verifies, so flipped bytes fail loudly even where no sha256 is computed.
 
 A long scene (a whole video) need not be in memory at once: a ``FrameSink`` in the worker spills
 its rows to a Parquet file group by group, and ``ShardWriter`` copies that file group by group.
@@ -23,14 +25,20 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from .encode import SceneRecord, Skip
-from .errors import UslError
+from .errors import UslError, one_line
 from .schema import table_schema, with_metadata
+from .tempfiles import process_token, temp_path
 
 # Small row groups keep "read one scene" cheap; a long video scene spans several groups.
 MAX_ROWS_PER_GROUP = 64
 MAX_SCENES_PER_GROUP = 4
 BINARY_COLUMNS = ("image", "depth")
-TMP_SUFFIX = ".tmp"
+
+
+def shard_paths(root: Path, split: str, index: int) -> dict[str, Path]:
+    """Final paths of one shard's tables: the one place that knows the folder layout."""
+    directory = Path(root) / split
+    return {table: directory / f"{table}-{index:05d}.parquet" for table in ("frames", "objects")}
 
 
 def sha256_file(path: Path, chunk: int = 1 << 20) -> str:
@@ -84,9 +92,10 @@ class ShardResult:
 class _TableStream:
     """A ParquetWriter on a temp path that becomes ``final`` on ``commit``."""
 
-    def __init__(self, final: Path, schema: pa.Schema, binary_plain: bool):
+    def __init__(self, final: Path, schema: pa.Schema, binary_plain: bool, root: Path | None = None):
         self.final = final
-        self.tmp = final.with_name(final.name + f"{TMP_SUFFIX}-{os.getpid()}")
+        self.root = root  # what the committed file's recorded path is relative to
+        self.tmp = temp_path(final)
         self.schema = schema
         self.rows = 0
         names = set(schema.names)
@@ -98,6 +107,7 @@ class _TableStream:
             use_dictionary=[n for n in schema.names if n not in binary and n not in ("instances",)],
             column_encoding={n: "PLAIN" for n in binary} or None,
             write_statistics=["scene_id", "view_id"] if "view_id" in names else ["scene_id"],
+            write_page_checksum=True,
         )
 
     def write(self, table: pa.Table) -> None:
@@ -115,7 +125,7 @@ class _TableStream:
         with open(self.tmp, "rb") as f:
             os.fsync(f.fileno())
         info = {
-            "file": f"{self.final.parent.name}/{self.final.name}",
+            "file": self.final.relative_to(self.root).as_posix() if self.root else self.final.name,
             "rows": self.rows,
             "bytes": self.tmp.stat().st_size,
             "sha256": sha256_file(self.tmp),
@@ -166,7 +176,9 @@ class FrameSink:
         self._rows.append(row)
         if len(self._rows) > MAX_ROWS_PER_GROUP and self._spill_dir is not None:
             if self._spill is None:
-                name = f"{quote(self.scene_id, safe='')}-{uuid.uuid4().hex[:12]}.parquet"  # ids may hold "/"
+                # ids may hold "/"; the token names the writer, so only a gone writer's spills are reaped
+                name = f"{quote(self.scene_id, safe='')}-{uuid.uuid4().hex[:12]}.{process_token()}.parquet"
+                Path(self._spill_dir).mkdir(parents=True, exist_ok=True)
                 self._spill = _TableStream(Path(self._spill_dir) / name, table_schema("frames"), True)
             self._spill.write(frames_table(self._rows[:MAX_ROWS_PER_GROUP], self._spill.schema))
             del self._rows[:MAX_ROWS_PER_GROUP]
@@ -212,13 +224,12 @@ class ShardWriter:
     """
 
     def __init__(self, root: Path, split: str, index: int, metadata: dict[str, Any]):
-        self.split, self.index = split, index
-        directory = Path(root) / split
-        directory.mkdir(parents=True, exist_ok=True)
-        self._frames = _TableStream(
-            directory / f"frames-{index:05d}.parquet", with_metadata(table_schema("frames"), metadata), True
-        )
-        self._objects_path = directory / f"objects-{index:05d}.parquet"
+        self.split, self.index, self.root = split, index, Path(root)
+        paths = shard_paths(root, split, index)
+        for path in paths.values():
+            path.parent.mkdir(parents=True, exist_ok=True)
+        self._frames = _TableStream(paths["frames"], with_metadata(table_schema("frames"), metadata), True, self.root)
+        self._objects_path = paths["objects"]
         self._objects_schema = with_metadata(table_schema("objects"), metadata)
         self._objects: _TableStream | None = None
         self._group: list[pa.Table] = []  # pieces of the row group being filled
@@ -278,7 +289,7 @@ class ShardWriter:
         self._write_group()
         if self._batch_objects:
             if self._objects is None:
-                self._objects = _TableStream(self._objects_path, self._objects_schema, False)
+                self._objects = _TableStream(self._objects_path, self._objects_schema, False, self.root)
             self._objects.write(objects_table(self._batch_objects, self._objects_schema))
         self._batch_scenes, self._batch_rows, self._batch_objects = 0, 0, []
 
@@ -302,13 +313,23 @@ class ShardWriter:
             self.abort()
 
 
+def size_problem(path: Path, info: dict[str, Any]) -> str | None:
+    """Why a shard file is not the size its manifest entry says (missing, truncated, replaced)."""
+    try:
+        size = path.stat().st_size
+    except FileNotFoundError:
+        return f"{path}: missing"
+    if size != info["bytes"]:
+        return f"{path}: size {size} bytes, expected {info['bytes']} (truncated or replaced)"
+    return None
+
+
 def verify_file(root: Path, info: dict[str, Any]) -> str | None:
     """Why a shard file does not match its recorded size/checksum/footer, or None if it does."""
     path = Path(root) / info["file"]
-    if not path.exists():
-        return f"{path}: missing"
-    if path.stat().st_size != info["bytes"]:
-        return f"{path}: size {path.stat().st_size} bytes, expected {info['bytes']} (truncated or replaced)"
+    problem = size_problem(path, info)
+    if problem:
+        return problem
     try:
         rows = pq.ParquetFile(path).metadata.num_rows
     except Exception as exc:  # pyarrow raises several types for broken footers
@@ -320,14 +341,22 @@ def verify_file(root: Path, info: dict[str, Any]) -> str | None:
     return None
 
 
-def remove_stale_temp_files(root: Path) -> int:
-    stale = list(Path(root).glob(f"*/*.parquet{TMP_SUFFIX}-*"))
-    for path in stale:
-        path.unlink(missing_ok=True)
-    return len(stale)
+VERIFY_MODES = ("size", "sha256")
 
 
-def raise_if_invalid(root: Path, info: dict[str, Any]) -> None:
-    problem = verify_file(root, info)
+def open_shard(root: Path, info: dict[str, Any], verify: str = "size") -> pq.ParquetFile:
+    """A manifest's shard file, opened only once it is the file the manifest describes.
+
+    ``size`` (always) catches truncated and replaced files for the cost of a stat; ``sha256``
+    reads the whole file once. Page checksums are verified on every read in both modes.
+    """
+    if verify not in VERIFY_MODES:
+        raise UslError(f"unknown shard verification {verify!r}; choose from {VERIFY_MODES}")
+    path = Path(root) / info["file"]
+    problem = size_problem(path, info) if verify == "size" else verify_file(root, info)
     if problem:
         raise UslError(problem)
+    try:
+        return pq.ParquetFile(path, page_checksum_verification=True)
+    except Exception as exc:  # pyarrow raises several types for broken footers
+        raise UslError(f"{path}: cannot open Parquet shard ({one_line(exc)})") from exc
