@@ -211,11 +211,16 @@ def run_build(
         raise ValueError("every ShardPlan needs at least one unit")
     keys = [(plan.split, plan.index) for plan in plans]
     state = BuildState(options.out, spec["name"], fingerprint, keys, about={"spec": spec, "creator": creator})
-    state.open()
+    created = state.open()
     summary = BuildSummary()
     with Owner(state.dir, options.claim_timeout, token_dirs=(state.spill_dir,)) as owner:
-        if prepare is not None:
-            prepare()
+        try:
+            if prepare is not None:
+                prepare()
+        except BaseException:
+            if created and not owner.others_alive():
+                state.forget()
+            raise
         todo = []
         for position, plan in enumerate(plans):
             if state.finished(plan.split, plan.index) is not None:
@@ -233,9 +238,9 @@ def run_build(
             if not owner.others_alive():
                 _remove_empty(state.spill_dir)
     summary.seconds = time.perf_counter() - start
-    if summary.scenes and summary.failed_scenes == summary.scenes:
-        raise UslError(f"every scene this run built failed to convert, e.g. {summary.first_error}; fix the input "
-                       f"(the failed scenes are recorded as skips in {options.out}: delete it before re-running)")
+    if summary.failed_scenes and summary.frames == 0:
+        raise UslError(f"every scene this run built failed to convert or was empty, e.g. {summary.first_error}; fix "
+                       f"the input (the failed scenes are recorded as skips in {options.out}: delete it before re-running)")
     return summary
 
 

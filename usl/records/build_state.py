@@ -24,6 +24,7 @@ from .tempfiles import TMP_MARK, temp_path
 STATE_DIR = ".build"
 BUILD_FILE = "build.json"
 IDENTITY_KEYS = ("dataset", "fingerprint", "shards")
+MARKER_SUFFIX = ".done.json"
 
 
 def shard_name(split: str, index: int) -> str:
@@ -68,8 +69,8 @@ class BuildState:
     def identity(self) -> dict[str, Any]:
         return {"dataset": self.dataset, "fingerprint": self.fingerprint, "shards": self.shards}
 
-    def open(self) -> None:
-        """Create or re-open the output folder; refuse one that holds something else.
+    def open(self) -> bool:
+        """Create or re-open the output folder (True: created it); refuse one that holds something else.
 
         The check comes before anything is written, and ``build.json`` is created no-clobber, so of
         two builds with different arguments started together on one folder, one is refused.
@@ -77,6 +78,7 @@ class BuildState:
         if self.root.exists() and not self.root.is_dir():
             raise UslError(f"{self.root}: --out is a file, not a folder")
         build_file = self.dir / BUILD_FILE
+        created = False
         if not build_file.exists():
             if self.root.exists() and any(p.name != STATE_DIR for p in self.root.iterdir()):
                 raise UslError(f"{self.root}: output folder is not empty and was not made by this build; "
@@ -87,6 +89,7 @@ class BuildState:
                 tmp.write_text(json.dumps({**self.identity, **self.about}, indent=1) + "\n")
                 try:
                     os.link(tmp, build_file)  # fails if another build created it first
+                    created = True
                 except FileExistsError:
                     pass
                 finally:
@@ -96,13 +99,20 @@ class BuildState:
         difference = identity_difference(read_build_file(self.root), self.identity)
         if difference:
             raise UslError(f"{self.root}: output folder holds {difference}; choose a new --out or delete it")
+        return created
+
+    def forget(self) -> None:
+        """Undo ``open`` of a fresh folder whose build failed before any shard: a re-run with fixed
+        inputs (other arguments) is then not refused."""
+        if not any(self.dir.glob(f"*{MARKER_SUFFIX}")):
+            (self.dir / BUILD_FILE).unlink(missing_ok=True)
 
     @property
     def spill_dir(self) -> Path:
         return self.dir / "spill"
 
     def _marker(self, split: str, index: int) -> Path:
-        return self.dir / f"{shard_name(split, index)}.json"
+        return self.dir / f"{shard_name(split, index)}{MARKER_SUFFIX}"
 
     def marker(self, split: str, index: int) -> dict[str, Any] | None:
         """The shard's recorded result, trusting the marker (it is written after the files)."""

@@ -1,4 +1,5 @@
-"""``usl-records``: validate a dataset folder, or summarise it with counts and a contact sheet."""
+"""``usl-records``: validate a dataset folder, summarise it with counts and a contact sheet, or
+gather build folders made on separate machines into one."""
 from __future__ import annotations
 
 import argparse
@@ -7,6 +8,7 @@ import sys
 from pathlib import Path
 
 from .errors import UslError
+from .gather import gather
 from .info import contact_sheet, dataset_counts, format_counts
 from .validate import validate_dataset
 
@@ -25,8 +27,20 @@ def main(argv: list[str] | None = None) -> int:
     info.add_argument("--scenes", type=int, default=4)
     info.add_argument("--views", type=int, default=4)
     info.add_argument("--json", action="store_true", help="print counts as JSON")
+    merge = sub.add_parser("gather", help="merge folders built apart (--num-shards/--shard-index) into one dataset")
+    merge.add_argument("parts", nargs="+", type=Path, metavar="PART", help="build folders of one build")
+    merge.add_argument("--out", type=Path, required=True, help="dataset folder to create (or complete)")
     args = parser.parse_args(argv)
     try:
+        if args.command == "gather":
+            summary = gather(args.parts, args.out, progress=True)
+            print(f"{args.out}: copied {summary.copied} shard(s), kept {summary.kept}")
+            if summary.missing:
+                print(f"usl-records: error: no part holds shard(s) {', '.join(summary.missing)}; build them "
+                      "(same command, their --shard-index) and gather again", file=sys.stderr)
+                return 1
+            print(f"{args.out / 'manifest.json'} written")
+            return 0
         if args.command == "validate":
             problems = validate_dataset(args.root, args.split, decode_images=not args.no_images, progress=True)
             for problem in problems:

@@ -360,3 +360,13 @@ def open_shard(root: Path, info: dict[str, Any], verify: str = "size") -> pq.Par
         return pq.ParquetFile(path, page_checksum_verification=True)
     except Exception as exc:  # pyarrow raises several types for broken footers
         raise UslError(f"{path}: cannot open Parquet shard ({one_line(exc)})") from exc
+
+
+def read_shard_table(root: Path, info: dict[str, Any], columns: Sequence[str] | None = None,
+                     verify: str = "size") -> pa.Table:
+    """A whole (verified) shard file as one table; any read failure is one line naming the file."""
+    file = open_shard(root, info, verify)
+    try:
+        return file.read(columns=list(columns) if columns else None)
+    except Exception as exc:  # corrupt pages: checksum, decompression or decoding errors
+        raise UslError(f"{Path(root) / info['file']}: cannot read ({one_line(exc)})") from exc

@@ -12,8 +12,8 @@ import numpy as np
 import pyarrow.parquet as pq
 from tqdm import tqdm
 
-from .encode import decode_image, decode_mask
-from .errors import UslError
+from .encode import decode_image, decode_mask, encode_mask
+from .errors import UslError, one_line
 from .manifest import load_manifest
 from .schema import read_metadata, table_schema
 from .shards import verify_file
@@ -46,9 +46,11 @@ def _check_instance(inst: dict[str, Any], height: int, width: int) -> list[str]:
         return [f"{where}: mask size {inst['mask']['size']} != image size [{height}, {width}]"]
     try:
         mask = decode_mask(inst["mask"])
-    except Exception as exc:  # pycocotools raises plain Exceptions for bad RLE
-        return [f"{where}: mask RLE does not decode ({exc})"]
+    except UslError as exc:
+        return [f"{where}: {exc}"]
     problems = []
+    if encode_mask(mask)["counts"] != inst["mask"]["counts"]:  # pycocotools decodes a cut RLE silently
+        problems.append(f"{where}: mask RLE is corrupt (it does not re-encode to itself)")
     if int(mask.sum()) != inst["area"]:
         problems.append(f"{where}: area {inst['area']} != mask pixel count {int(mask.sum())}")
     x0, y0, x1, y1 = inst["bbox"]
@@ -59,7 +61,7 @@ def _check_instance(inst: dict[str, Any], height: int, width: int) -> list[str]:
 
 def _check_frames(path: Path, shard: dict[str, Any], categories: set[int], decode_images: bool) -> list[str]:
     problems: list[str] = []
-    file = pq.ParquetFile(path)
+    file = pq.ParquetFile(path, page_checksum_verification=True)
     read_metadata(file.schema_arrow, str(path))
     if not file.schema_arrow.remove_metadata().equals(table_schema("frames")):
         return [f"{path}: Arrow schema differs from the frames schema v1"]
@@ -110,7 +112,7 @@ def _check_frames(path: Path, shard: dict[str, Any], categories: set[int], decod
 
 
 def _check_objects(path: Path, frames_path: Path) -> list[str]:
-    file = pq.ParquetFile(path)
+    file = pq.ParquetFile(path, page_checksum_verification=True)
     read_metadata(file.schema_arrow, str(path))
     if not file.schema_arrow.remove_metadata().equals(table_schema("objects")):
         return [f"{path}: Arrow schema differs from the objects schema v1"]
@@ -164,5 +166,5 @@ def validate_dataset(
         except UslError as exc:
             problems.append(str(exc))
         except Exception as exc:  # a shard that breaks pyarrow must still be reported, not crash the check
-            problems.append(f"{name}: unreadable ({type(exc).__name__}: {exc})")
+            problems.append(f"{name}: unreadable ({type(exc).__name__}: {one_line(exc)})")
     return problems
