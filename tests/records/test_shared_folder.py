@@ -13,6 +13,7 @@ import fake_scenes
 from pipelines.common import BuildOptions, run_build
 from shared_build import NUM_SHARDS, plans
 from usl.records.claims import host_identity
+from usl.records.cli import main as records_main
 from usl.records.validate import validate_dataset
 
 HERE = Path(__file__).parent
@@ -129,3 +130,28 @@ def test_claims_of_gone_processes_are_taken_over_and_their_files_removed(referen
     else:
         assert not summary.manifest_written and summary.pending_shards == ["train/0"]
         assert kept == [partial, marker_tmp, spill, scratch], "a live process's files are never touched"
+
+
+def test_gather_merges_parts_built_apart(reference, tmp_path, capsys):
+    parts = [tmp_path / f"part{i}" for i in range(3)]
+    for index, part in enumerate(parts):
+        assert not build(part, num_shards=3, shard_index=index).manifest_written
+    out = tmp_path / "gathered"
+    assert records_main(["gather", str(parts[0]), str(parts[1]), "--out", str(out)]) == 1
+    assert "no part holds shard(s) train/2, train/5, train/8, train/11" in capsys.readouterr().err
+    assert not (out / "manifest.json").exists()
+    assert records_main(["gather", *map(str, parts), "--out", str(out)]) == 0  # completes what is there
+    assert "copied 4 shard(s), kept 8" in capsys.readouterr().out
+    assert shard_checksums(out) == shard_checksums(reference) and validate_dataset(out) == []
+
+    other = tmp_path / "other"
+    build(other, version=2, num_shards=3, shard_index=0)
+    assert records_main(["gather", str(parts[0]), str(other), "--out", str(tmp_path / "mixed")]) == 2
+    assert "holds a build with other arguments (v)" in capsys.readouterr().err
+    shard = parts[1] / "train" / "frames-00001.parquet"
+    data = bytearray(shard.read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    shard.write_bytes(bytes(data))
+    assert records_main(["gather", *map(str, parts), "--out", str(tmp_path / "corrupt")]) == 2
+    assert f"{shard}: sha256 does not match" in capsys.readouterr().err
+    assert not list((tmp_path / "corrupt").rglob("*.tmp-*"))
