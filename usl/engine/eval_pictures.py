@@ -34,7 +34,9 @@ def evaluation_picture(
     categories: CategoryIndex, all_poses: Sequence[torch.Tensor], num_views: int = 3,
 ) -> np.ndarray:
     """The picture of one prediction; images are read again (the evaluator keeps no pixels)."""
-    frame = decode_frame(dataset.read_scene(inp.frame.scene_id, views=[position])[0], categories, with_image=True)
+    source = dataset.source(inp.frame.scene_id)
+    frame = decode_frame(dataset.read_scene(inp.frame.scene_id, views=[position])[0], categories, with_image=True,
+                         source=source)
     pred = pred.to("cpu")
     colors = palette(len(pred))
     image = to_uint8(frame.image)
@@ -52,7 +54,7 @@ def evaluation_picture(
     positions = spread_positions(dataset.num_views(frame.scene_id), position, num_views)
     color_of = {int(i): colors[n] for n, i in enumerate(pred.instance_ids.tolist()) if i >= 0}
     for row in dataset.read_scene(frame.scene_id, views=positions):
-        view = decode_frame(row, categories, with_image=True)
+        view = decode_frame(row, categories, with_image=True, source=source)
         keep = [n for n, i in enumerate(view.instance_ids.tolist()) if i in color_of]
         verts = transform_points(pred.verts.double(), relative_transform(frame.cam_to_world, view.cam_to_world)).float()
         height, width = view.size

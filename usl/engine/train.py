@@ -25,6 +25,7 @@ from usl.config import Config, ConfigError, config_from_dict, deep_merge, load_c
 from usl.data import CategoryIndex, MultiViewDataset, ShardedBatchSampler, build_train_loader
 from usl.model.usl_model import USLModel
 from usl.records import RecordsDataset, UslError
+from usl.records.errors import error_line
 
 from .checkpoint import (
     CHECKPOINT_DIR,
@@ -240,7 +241,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         finally:
             shutdown_distributed()
     except (ConfigError, CheckpointError, UslError) as exc:
-        print(f"{COMMAND}: error: {exc}", file=sys.stderr)
+        print(f"{COMMAND}: error: {error_line(exc)}", file=sys.stderr)
         return 2
     return 0
 
