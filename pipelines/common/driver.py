@@ -16,7 +16,7 @@ import time
 from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
-from typing import Any, Callable, Iterator
+from typing import Any, Callable, Generator, Iterator
 
 from tqdm import tqdm
 
@@ -179,18 +179,32 @@ class SceneBuilder:
 
 
 def _claimed_units(todo: list[ShardPlan], owner: Owner, state: BuildState) -> Iterator[tuple[tuple[ShardPlan, int], Any]]:
-    """Units of the shards this run wins the claim of, claimed one shard at a time as they are drawn."""
+    """Units of the shards this run wins the claim of, claimed one shard at a time as they are drawn.
+
+    Shards another live process held are tried once more at the end: it may have died meanwhile.
+    """
+    held_elsewhere = []
     for plan in todo:
-        claim = owner.claim(shard_name(plan.split, plan.index))
-        if claim is None:
-            continue  # a live process is building it
-        if claim.previous_token:
-            state.remove_temp_files(plan.split, plan.index, claim.previous_token)
-        if state.marker(plan.split, plan.index) is not None:
-            owner.release(claim.name)  # another process finished it since this run started
-            continue
-        for position, unit in enumerate(plan.units):
-            yield (plan, position), unit
+        if not (yield from _units_if_claimed(plan, owner, state)):
+            held_elsewhere.append(plan)
+    for plan in held_elsewhere:
+        yield from _units_if_claimed(plan, owner, state)
+
+
+def _units_if_claimed(plan: ShardPlan, owner: Owner,
+                      state: BuildState) -> Generator[tuple[tuple[ShardPlan, int], Any], None, bool]:
+    """The plan's units if this run claims it (returns False if a live process holds the claim)."""
+    claim = owner.claim(shard_name(plan.split, plan.index))
+    if claim is None:
+        return False
+    if claim.previous_token:
+        state.remove_temp_files(plan.split, plan.index, claim.previous_token)
+    if state.marker(plan.split, plan.index) is not None:
+        owner.release(claim.name)  # another process finished it since this run started
+        return True
+    for position, unit in enumerate(plan.units):
+        yield (plan, position), unit
+    return True
 
 
 def run_build(
