@@ -99,11 +99,7 @@ class RayExecutor:
 
 def make_executor(name: str, workers: int, ray_address: str | None,
                   initializer: Callable[[], None]) -> LocalExecutor | RayExecutor:
-    if name == "ray":
-        return RayExecutor(ray_address, initializer)
-    if ray_address is not None:
-        raise UslError("--ray-address needs --executor ray")
-    return LocalExecutor(workers, initializer)
+    return RayExecutor(ray_address, initializer) if name == "ray" else LocalExecutor(workers, initializer)
 
 
 def ordered_results(executor: LocalExecutor | RayExecutor, fn: Callable[[Any], Any],

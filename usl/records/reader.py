@@ -19,7 +19,7 @@ from torch.utils.data import IterableDataset, get_worker_info
 from .errors import UslError, one_line
 from .manifest import load_manifest
 from .schema import read_metadata
-from .shards import VERIFY_MODES, open_shard
+from .shards import VERIFY_MODES, open_shard, verify_file
 
 
 @dataclass(frozen=True)
@@ -32,9 +32,9 @@ class SceneLocation:
 class _OpenShard:
     """A verified Parquet file plus the first row of each row group, for reading a row range cheaply."""
 
-    def __init__(self, root: Path, info: dict[str, Any], verify: str):
+    def __init__(self, root: Path, info: dict[str, Any]):
         self.path = root / info["file"]
-        self.file: pq.ParquetFile = open_shard(root, info, verify)
+        self.file: pq.ParquetFile = open_shard(root, info)
         read_metadata(self.file.schema_arrow, str(self.path))
         meta = self.file.metadata
         self.group_starts = np.cumsum([0] + [meta.row_group(i).num_rows for i in range(meta.num_row_groups)])
@@ -62,8 +62,8 @@ class RecordsDataset:
     ``read_scene(scene_id)`` returns that scene's frame rows (dicts in schema v1, sorted by
     view_id); ``views`` picks rows by position within the scene. Decode fields with
     ``usl.records.decode_image`` / ``decode_depth`` / ``decode_mask``, naming ``source(scene_id)``
-    in errors. Every shard is checked against the manifest when first opened: its size always, its
-    sha256 too with ``verify="sha256"``.
+    in errors. Every shard is checked against the manifest when first opened (its size); with
+    ``verify="sha256"`` every shard's checksum is checked once, here, before any worker reads it.
     """
 
     def __init__(self, root: str | Path, split: str, verify: str = "size"):
@@ -71,7 +71,6 @@ class RecordsDataset:
             raise UslError(f"unknown shard verification {verify!r}; choose from {VERIFY_MODES}")
         self.root = Path(root)
         self.split = split
-        self.verify = verify
         self.manifest = load_manifest(self.root)
         if split not in self.manifest["splits"]:
             raise UslError(f"{self.root / 'manifest.json'}: no split {split!r} (has {sorted(self.manifest['splits'])})")
@@ -81,6 +80,11 @@ class RecordsDataset:
             for scene_id, first, count in shard["scenes"]:
                 self.locations[scene_id] = SceneLocation(shard_pos, first, count)
         self.scene_ids: list[str] = list(self.locations)
+        if verify == "sha256":
+            for info in (s[t] for s in self.shards for t in ("frames", "objects") if s.get(t)):
+                problem = verify_file(self.root, info)
+                if problem:
+                    raise UslError(problem)
         self._open: dict[tuple[int, str, int], _OpenShard] = {}
         self._objects_cache: dict[int, dict[str, list[dict[str, Any]]]] = {}
 
@@ -102,7 +106,7 @@ class RecordsDataset:
             info = self.shards[shard_pos][table]
             if info is None:
                 raise UslError(f"{self.root}: split {self.split!r} has no {table} table")
-            self._open[key] = _OpenShard(self.root, info, self.verify)
+            self._open[key] = _OpenShard(self.root, info)
         return self._open[key]
 
     def source(self, scene_id: str) -> str:

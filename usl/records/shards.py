@@ -341,19 +341,14 @@ def verify_file(root: Path, info: dict[str, Any]) -> str | None:
     return None
 
 
-VERIFY_MODES = ("size", "sha256")
+VERIFY_MODES = ("size", "sha256")  # what readers check on open; sha256 reads each shard once more
 
 
-def open_shard(root: Path, info: dict[str, Any], verify: str = "size") -> pq.ParquetFile:
-    """A manifest's shard file, opened only once it is the file the manifest describes.
-
-    ``size`` (always) catches truncated and replaced files for the cost of a stat; ``sha256``
-    reads the whole file once. Page checksums are verified on every read in both modes.
-    """
-    if verify not in VERIFY_MODES:
-        raise UslError(f"unknown shard verification {verify!r}; choose from {VERIFY_MODES}")
+def open_shard(root: Path, info: dict[str, Any]) -> pq.ParquetFile:
+    """A manifest's shard file, opened only if its size is what the manifest says (a stat catches
+    truncated and replaced files); page checksums are verified on every read from it."""
     path = Path(root) / info["file"]
-    problem = size_problem(path, info) if verify == "size" else verify_file(root, info)
+    problem = size_problem(path, info)
     if problem:
         raise UslError(problem)
     try:
@@ -362,10 +357,9 @@ def open_shard(root: Path, info: dict[str, Any], verify: str = "size") -> pq.Par
         raise UslError(f"{path}: cannot open Parquet shard ({one_line(exc)})") from exc
 
 
-def read_shard_table(root: Path, info: dict[str, Any], columns: Sequence[str] | None = None,
-                     verify: str = "size") -> pa.Table:
-    """A whole (verified) shard file as one table; any read failure is one line naming the file."""
-    file = open_shard(root, info, verify)
+def read_shard_table(root: Path, info: dict[str, Any], columns: Sequence[str] | None = None) -> pa.Table:
+    """A whole (size-checked) shard file as one table; any read failure is one line naming the file."""
+    file = open_shard(root, info)
     try:
         return file.read(columns=list(columns) if columns else None)
     except Exception as exc:  # corrupt pages: checksum, decompression or decoding errors
