@@ -18,8 +18,8 @@ from typing import Any, Iterable
 
 from .errors import UslError
 from .manifest import MANIFEST, write_json_atomic
-from .shards import ShardResult, shard_paths, verify_file
-from .tempfiles import TMP_MARK, temp_path
+from .shards import ShardResult, shard_paths, shard_temp_path, verify_file
+from .tempfiles import temp_path
 
 STATE_DIR = ".build"
 BUILD_FILE = "build.json"
@@ -140,7 +140,7 @@ class BuildState:
     def remove_temp_files(self, split: str, index: int, token: str) -> None:
         """Delete the partial files of one shard that the (gone) process ``token`` was writing."""
         for final in shard_paths(self.root, split, index).values():
-            final.with_name(f"{final.name}{TMP_MARK}{token}").unlink(missing_ok=True)
+            shard_temp_path(final, token).unlink(missing_ok=True)
 
     def manifest_path(self) -> Path:
         return self.root / MANIFEST

@@ -146,7 +146,7 @@ class Owner:
             for path in paths:
                 try:
                     os.utime(path)
-                except FileNotFoundError:
+                except OSError:  # released meanwhile, or a network disk's hiccup: beat again later
                     pass
 
     def others_alive(self) -> bool:

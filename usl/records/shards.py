@@ -35,6 +35,11 @@ MAX_SCENES_PER_GROUP = 4
 BINARY_COLUMNS = ("image", "depth")
 
 
+def shard_temp_path(final: Path, token: str | None = None) -> Path:
+    """Where this process (or the one with ``token``) writes a shard file before renaming it."""
+    return temp_path(final, token=token)
+
+
 def shard_paths(root: Path, split: str, index: int) -> dict[str, Path]:
     """Final paths of one shard's tables: the one place that knows the folder layout."""
     directory = Path(root) / split
@@ -95,7 +100,7 @@ class _TableStream:
     def __init__(self, final: Path, schema: pa.Schema, binary_plain: bool, root: Path | None = None):
         self.final = final
         self.root = root  # what the committed file's recorded path is relative to
-        self.tmp = temp_path(final)
+        self.tmp = shard_temp_path(final)
         self.schema = schema
         self.rows = 0
         names = set(schema.names)

@@ -28,10 +28,10 @@ def set_process_token(token: str) -> None:
     _token = token
 
 
-def temp_path(final: Path, hidden: bool = False) -> Path:
-    """Where this process writes ``final`` before renaming it into place."""
+def temp_path(final: Path, hidden: bool = False, token: str | None = None) -> Path:
+    """Where this process (or the one with ``token``) writes ``final`` before renaming it into place."""
     final = Path(final)
-    return final.with_name(f"{'.' if hidden else ''}{final.name}{TMP_MARK}{process_token()}")
+    return final.with_name(f"{'.' if hidden else ''}{final.name}{TMP_MARK}{token or process_token()}")
 
 
 def temp_files_of(directory: Path, token: str) -> list[Path]:
