@@ -60,7 +60,6 @@ class BuildSummary:
     built_shards: int = 0
     skipped: int = 0
     failed_scenes: int = 0
-    first_error: str = ""
     seconds: float = 0.0
     manifest_written: bool = False
     pending_shards: list[str] = field(default_factory=list)
@@ -153,6 +152,9 @@ def scratch_dir(out: Path) -> Path:
     return Path(out) / STATE_DIR / f"scratch-{process_token()}"
 
 
+FAILED_SCENE = "scene not converted: "  # reason prefix of a --skip-bad-scenes skip
+
+
 @dataclass
 class BuiltScene:
     record: SceneRecord
@@ -175,7 +177,7 @@ class SceneBuilder:
             scene_id = str(getattr(unit, "scene_id", unit))
             error = f"{type(exc).__name__}: {one_line(exc)}" if not isinstance(exc, UslError) else one_line(exc)
             path = str(getattr(unit, "scene_dir", "") or scene_id)
-            return BuiltScene(SceneRecord(scene_id, [], skips=[Skip(f"scene not converted: {error}", path)]), error)
+            return BuiltScene(SceneRecord(scene_id, [], skips=[Skip(f"{FAILED_SCENE}{error}", path)]), error)
 
 
 def _claimed_units(todo: list[ShardPlan], owner: Owner, state: BuildState) -> Iterator[tuple[tuple[ShardPlan, int], Any]]:
@@ -246,15 +248,17 @@ def run_build(
         summary.pending_shards = [f"{split}/{index}" for (split, index), r in finished.items() if r is None]
         results = [r for r in finished.values() if r is not None]
         summary.skipped = sum(s["count"] for r in results for s in r["skips"])
+        failed = [s for r in results for s in r["skips"] if s["reason"].startswith(FAILED_SCENE)]
+        if failed and not any(r["frames"]["rows"] for r in results):
+            raise UslError(f"every scene built so far failed to convert or was empty, e.g. {failed[0]['path']}: "
+                           f"{failed[0]['reason']}; fix the input (the failed scenes are recorded as skips in "
+                           f"{options.out}: delete it before re-running)")
         if not summary.pending_shards:
             write_json_atomic(state.manifest_path(), build_manifest(spec, results, creator, state.fingerprint))
             summary.manifest_written = True
             if not owner.others_alive():
                 _remove_empty(state.spill_dir)
     summary.seconds = time.perf_counter() - start
-    if summary.failed_scenes and summary.frames == 0:
-        raise UslError(f"every scene this run built failed to convert or was empty, e.g. {summary.first_error}; fix "
-                       f"the input (the failed scenes are recorded as skips in {options.out}: delete it before re-running)")
     return summary
 
 
@@ -279,7 +283,6 @@ def _build_shards(options: BuildOptions, spec: dict[str, Any], state: BuildState
                 summary.scenes += 1
                 if built.error is not None:
                     summary.failed_scenes += 1
-                    summary.first_error = summary.first_error or f"{built.record.scene_id}: {built.error}"
                     tqdm.write(f"{spec['name']}: scene {built.record.scene_id} not converted: {built.error}")
                 bar.update(1)
                 if position == len(plan.units) - 1:

@@ -91,4 +91,4 @@ def test_missing_pose_file_is_a_recorded_skip_or_stops_the_build_naming_it(input
     assert not (tmp_path / "out" / "manifest.json").exists()
     # By default the scene becomes a skip; here it was the only one with views, so the build fails.
     assert main(argv) == 2
-    assert "every scene this run built failed" in capsys.readouterr().err
+    assert "every scene built so far failed" in capsys.readouterr().err
