@@ -20,8 +20,9 @@ from usl.config import DataConfig
 from usl.engine.evaluate import main as eval_main
 from usl.records import RecordsDataset, SceneRecord, UslError
 from usl.records.cli import main as records_main
+from usl.records.shards import shard_paths
 
-SHARD = "train/frames-00000.parquet"
+SHARD = shard_paths(Path(), "train", 0)["frames"].as_posix()  # where the layout puts train shard 0
 
 
 def broken_scene(unit):

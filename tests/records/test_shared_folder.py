@@ -14,6 +14,7 @@ from pipelines.common import BuildOptions, run_build
 from shared_build import NUM_SHARDS, plans
 from usl.records.claims import host_identity
 from usl.records.cli import main as records_main
+from usl.records.shards import shard_paths, shard_temp_path
 from usl.records.validate import validate_dataset
 
 HERE = Path(__file__).parent
@@ -114,7 +115,7 @@ def test_claims_of_gone_processes_are_taken_over_and_their_files_removed(referen
     }[holder]
     write_holder(build_dir / "owners" / f"{token}.json", token, host, pid, age)
     write_holder(build_dir / "claims" / "train-00000.json", token, host, pid, age)
-    partial = out / "train" / f"frames-00000.parquet.tmp-{token}"
+    partial = shard_temp_path(shard_paths(out, "train", 0)["frames"], token)
     marker_tmp = build_dir / f".train-00000.done.json.tmp-{token}"
     spill = build_dir / "spill" / f"scene000-0123456789ab.{token}.parquet"
     scratch = build_dir / f"scratch-{token}" / "detections" / "scene000.jsonl"
@@ -148,7 +149,7 @@ def test_gather_merges_parts_built_apart(reference, tmp_path, capsys):
     build(other, version=2, num_shards=3, shard_index=0)
     assert records_main(["gather", str(parts[0]), str(other), "--out", str(tmp_path / "mixed")]) == 2
     assert "holds a build with other arguments (v)" in capsys.readouterr().err
-    shard = parts[1] / "train" / "frames-00001.parquet"
+    shard = shard_paths(parts[1], "train", 1)["frames"]
     data = bytearray(shard.read_bytes())
     data[len(data) // 2] ^= 0xFF
     shard.write_bytes(bytes(data))
