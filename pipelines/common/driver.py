@@ -196,13 +196,11 @@ def _claimed_units(todo: list[ShardPlan], owner: Owner, state: BuildState) -> It
 def _units_if_claimed(plan: ShardPlan, owner: Owner,
                       state: BuildState) -> Generator[tuple[tuple[ShardPlan, int], Any], None, bool]:
     """The plan's units if this run claims it (returns False if a live process holds the claim)."""
-    claim = owner.claim(shard_name(plan.split, plan.index))
-    if claim is None:
+    name = shard_name(plan.split, plan.index)
+    if not owner.claim(name, on_takeover=partial(state.remove_temp_files, plan.split, plan.index)):
         return False
-    if claim.previous_token:
-        state.remove_temp_files(plan.split, plan.index, claim.previous_token)
     if state.marker(plan.split, plan.index) is not None:
-        owner.release(claim.name)  # another process finished it since this run started
+        owner.release(name)  # another process finished it since this run started
         return True
     for position, unit in enumerate(plan.units):
         yield (plan, position), unit

@@ -22,10 +22,9 @@ import shutil
 import socket
 import threading
 import time
-from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 from .errors import UslError
 from .tempfiles import process_token, temp_files_of
@@ -87,12 +86,6 @@ def is_stale(raw: bytes, mtime: float, stale_after: float) -> bool:
     if holder.get("host") == host_identity() and holder.get("token") != process_token():
         return not _pid_alive(int(holder["pid"]))
     return False
-
-
-@dataclass
-class Claim:
-    name: str
-    previous_token: str | None  # the stale holder it was taken from; its temp files are garbage
 
 
 class Owner:
@@ -161,10 +154,13 @@ class Owner:
     def _claim_path(self, name: str) -> Path:
         return self.claims_dir / f"{name}.json"
 
-    def claim(self, name: str) -> Claim | None:
-        """Claim ``name``, taking it over if its holder is gone; None while a live process holds it."""
+    def claim(self, name: str, on_takeover: Callable[[str], None] | None = None) -> bool:
+        """Claim ``name``, taking it over if its holder is gone; False while a live process holds it.
+
+        Whoever removes a gone holder's claim calls ``on_takeover(its token)`` at once (to delete
+        that holder's partial files), even if another process then wins the new claim.
+        """
         path = self._claim_path(name)
-        previous = None
         for _ in range(3):
             try:
                 _create_exclusive(path, self.info())
@@ -172,14 +168,15 @@ class Owner:
                 found = _read(path)
                 if found is not None:
                     if not is_stale(*found, self.stale_after):
-                        return None
-                    if self._remove_unchanged(path, found[0]):
-                        previous = _holder(found[0]).get("token") or previous
+                        return False
+                    token = _holder(found[0]).get("token")
+                    if self._remove_unchanged(path, found[0]) and token and on_takeover is not None:
+                        on_takeover(token)
                 continue
             with self._lock:
                 self.held.add(path)
-            return Claim(name, previous)
-        return None
+            return True
+        return False
 
     def _remove_unchanged(self, path: Path, raw: bytes) -> bool:
         """Remove ``path`` if it still holds ``raw``: rename it aside first, so a fresh claim that
