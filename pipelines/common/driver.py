@@ -24,7 +24,7 @@ from usl.records.build_state import STATE_DIR, BuildState, shard_name
 from usl.records.claims import STALE_AFTER_SECONDS, Owner
 from usl.records.encode import SceneRecord, Skip
 from usl.records.errors import UslError, one_line
-from usl.records.manifest import build_manifest, dataset_metadata, write_json_atomic
+from usl.records.manifest import build_manifest, dataset_metadata, publish_dataset, usl_version
 from usl.records.shards import ShardWriter
 from usl.records.tempfiles import process_token
 
@@ -132,17 +132,11 @@ def fingerprint_from_args(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def creator_from_args(command: str, args: argparse.Namespace) -> dict[str, Any]:
-    from importlib.metadata import PackageNotFoundError, version
-
-    try:
-        usl_version = version("usl")
-    except PackageNotFoundError:
-        usl_version = "unknown"
     return {
         "command": command,
         "argv": sys.argv[1:],
         "arguments": {k: _jsonable(v) for k, v in sorted(vars(args).items())},
-        "usl_version": usl_version,
+        "usl_version": usl_version(),
     }
 
 
@@ -252,7 +246,7 @@ def run_build(
                            f"{failed[0]['reason']}; fix the input (the failed scenes are recorded as skips in "
                            f"{options.out}: delete it before re-running)")
         if not summary.pending_shards:
-            write_json_atomic(state.manifest_path(), build_manifest(spec, results, creator, state.fingerprint))
+            publish_dataset(options.out, build_manifest(spec, results, creator, state.fingerprint))
             summary.manifest_written = True
             if not owner.others_alive():
                 _remove_empty(state.spill_dir)

@@ -102,7 +102,7 @@ def instance_entries(labels: np.ndarray, depth: np.ndarray | None) -> list[dict[
         {
             "instance_id": int(ids[k]),
             "mask": {"size": [height, width], "counts": rles[k]["counts"].decode("ascii")},
-            "bbox": [float(x0[k]), float(y0[k]), float(x1[k]), float(y1[k])],
+            "box_xyxy": [float(x0[k]), float(y0[k]), float(x1[k]), float(y1[k])],
             "area": int(area[k]),
             "depth_min": float(nearest[k]),
         }

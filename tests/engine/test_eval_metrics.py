@@ -86,7 +86,7 @@ def test_view_metrics_match_pyrender_reprojection(dataset):
                 iou = (masks[n] & true).sum() / (masks[n] | true).sum()
                 near = depth[masks[n]].min() if masks[n].any() else math.nan
                 per_object[inst["instance_id"]][0].append(iou)
-                per_object[inst["instance_id"]][1].append(_np_giou(_np_box(masks[n]), inst["bbox"]) if masks[n].any() else math.nan)
+                per_object[inst["instance_id"]][1].append(_np_giou(_np_box(masks[n]), inst["box_xyxy"]) if masks[n].any() else math.nan)
                 per_object[inst["instance_id"]][2].append(abs(near - inst["depth_min"]))
         for r in rows:
             ious, gious, depths = per_object[r["instance_id"]]

@@ -31,8 +31,8 @@ def broken_scene(unit):
     scene_id, seed, views = unit
     rows = list(fake_frames(scene_id, seed, views))
     if scene_id == "s1":
-        rows[1]["image"] = b""
-        rows[2]["instances"][0]["bbox"] = [0.0, 0.0, 99.0, 5.0]
+        rows[1]["image"]["bytes"] = b""
+        rows[2]["instances"][0]["box_xyxy"] = [0.0, 0.0, 99.0, 5.0]
     if scene_id == "rle":
         rows[0]["instances"][0]["mask"]["counts"] = "garbage!!"
     return SceneRecord(scene_id, rows, build_fake_scene(unit).objects)
@@ -162,7 +162,7 @@ def test_validate_reports_an_empty_image_and_keeps_checking_the_shard(dataset, c
     assert records_main(["validate", str(dataset)]) == 1
     problems = capsys.readouterr().out.splitlines()
     assert any(f"{SHARD}: scene 's1' view 1: image bytes are empty" in p for p in problems)
-    assert any(f"{SHARD}: scene 's1' view 2: instance 7: bbox" in p for p in problems), "rows after it are checked"
+    assert any(f"{SHARD}: scene 's1' view 2: instance 7: box_xyxy" in p for p in problems), "rows after it are checked"
     assert any("scene 'rle' view 0: instance 7: mask RLE does not decode" in p for p in problems)
 
 

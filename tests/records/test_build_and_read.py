@@ -55,10 +55,10 @@ def test_resume_after_kill_matches_uninterrupted_build(tmp_path):
     proc = subprocess.run([sys.executable, "-c", KILLER.format(here=str(HERE), out=str(interrupted))], cwd=HERE)
     assert proc.returncode == 3
     assert not (interrupted / "manifest.json").exists()
-    assert list(interrupted.glob("train/*.tmp-*")), "the killed build should leave its partial shard as a temp file"
+    assert list(interrupted.glob("frames/train/*.tmp-*")), "the killed build should leave its partial shard as a temp file"
     summary = build(interrupted)
     assert summary.kept_shards == 2 and summary.built_shards == 2
-    assert not list(interrupted.glob("train/*.tmp-*"))
+    assert not list(interrupted.glob("frames/train/*.tmp-*"))
     assert checksums(interrupted) == checksums(reference)
 
 
@@ -76,7 +76,7 @@ def test_round_trip_and_worker_count_determinism(tmp_path):
         assert got["image"] == want["image"] and got["K"] == want["K"]
         for g, w in zip(got["instances"], want["instances"]):
             np.testing.assert_array_equal(decode_mask(g["mask"]), decode_mask(w["mask"]))
-            assert g["bbox"] == w["bbox"] and g["instance_id"] == w["instance_id"]
+            assert g["box_xyxy"] == w["box_xyxy"] and g["instance_id"] == w["instance_id"]
     assert [r["view_id"] for r in ds.read_scene("scene005", views=[2, 0])] == [2, 0]
     objects = ds.read_objects("scene005")
     np.testing.assert_allclose(np.asarray(objects[1]["vertices"]), np.asarray(expected.objects[1]["vertices"]))
@@ -113,3 +113,20 @@ def test_split_build_across_machines_then_finalise(tmp_path):
                             make_plans(), build_fake_scene, {})
     assert summary.manifest_written and summary.kept_shards == 2 and summary.built_shards == 2
     assert len(RecordsDataset(out, "train")) == 10
+
+
+def test_finished_shard_in_an_older_layout_is_rebuilt_not_mixed_in(tmp_path):
+    """A build begun by usl 0.1 (v1 layout) and resumed now: its finished shards are redone in v2."""
+    out = tmp_path / "ds"
+    plans = make_plans(num_scenes=4, per_shard=2)
+    build(out, plans=plans)
+    marker = out / ".build" / "train-00000.json"
+    result = json.loads(marker.read_text())
+    (out / "train").mkdir()
+    (out / "frames" / "train" / "frames-00000.parquet").rename(out / "train" / "frames-00000.parquet")
+    result["frames"]["file"] = "train/frames-00000.parquet"
+    marker.write_text(json.dumps(result))
+    summary = build(out, plans=plans)
+    assert (summary.kept_shards, summary.built_shards) == (1, 1)
+    assert json.loads((out / "manifest.json").read_text())["splits"]["train"]["shards"][0]["frames"]["file"] == (
+        "frames/train/frames-00000.parquet")

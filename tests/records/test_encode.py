@@ -33,7 +33,7 @@ def test_instance_box_area_and_depth_match_pycocotools():
     inst = make_instance(3, 7, mask, depth)
     rle = {"size": [40, 60], "counts": inst["mask"]["counts"].encode()}
     x, y, w, h = coco.toBbox(rle)
-    assert inst["bbox"] == [x, y, x + w, y + h] == [8.0, 5.0, 41.0, 21.0]
+    assert inst["box_xyxy"] == [x, y, x + w, y + h] == [8.0, 5.0, 41.0, 21.0]
     assert inst["area"] == coco.area(rle) == mask.sum()
     assert inst["depth_min"] == pytest.approx(np.nanmin(np.where(mask, depth, np.nan)))
     with pytest.raises(ValueError):

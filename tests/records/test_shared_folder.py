@@ -116,7 +116,7 @@ def test_claims_of_gone_processes_are_taken_over_and_their_files_removed(referen
     write_holder(build_dir / "owners" / f"{token}.json", token, host, pid, age)
     write_holder(build_dir / "claims" / "train-00000.json", token, host, pid, age)
     partial = shard_temp_path(shard_paths(out, "train", 0)["frames"], token)
-    marker_tmp = build_dir / f".train-00000.done.json.tmp-{token}"
+    marker_tmp = build_dir / f".train-00000.json.tmp-{token}"
     spill = build_dir / "spill" / f"scene000-0123456789ab.{token}.parquet"
     scratch = build_dir / f"scratch-{token}" / "detections" / "scene000.jsonl"
     for path in (partial, marker_tmp, spill, scratch):

@@ -10,6 +10,7 @@ import pytest
 from fake_scenes import SPEC, build_fake_scene, build_streamed_fake_scene, fake_frames
 from pipelines.common import BuildOptions, ShardPlan, run_build
 from usl.records import RecordsDataset, SceneRecord
+from usl.records.manifest import dataset_metadata
 from usl.records.schema import table_schema
 from usl.records.shards import MAX_ROWS_PER_GROUP, FrameSink, ShardWriter, frames_table
 
@@ -52,7 +53,7 @@ def test_streamed_scenes_give_the_same_shards_as_in_memory(in_memory, tmp_path, 
     rows = RecordsDataset(root, "train").read_scene("scene010")
     assert [r["view_id"] for r in rows] == list(range(130))
     assert [r["image"] for r in rows] == [f["image"] for f in fake_frames("scene010", 10, 130)]
-    groups = pq.ParquetFile(root / "train" / "frames-00000.parquet").metadata
+    groups = pq.ParquetFile(root / "frames" / "train" / "frames-00000.parquet").metadata
     # Scenes of 3, 150, 5, 64 rows: 3 + 150 fill two groups and the batch ends with the 150-row scene;
     # 5 + 64 then fill one more and end the next batch.
     assert [groups.row_group(i).num_rows for i in range(groups.num_row_groups)] == [64, 64, 25, 64, 5]
@@ -92,9 +93,9 @@ def test_rows_out_of_order_are_refused_by_the_sink_and_the_writer(tmp_path):
     pq.write_table(frames_table(swapped, table_schema("frames")), spill)
     for record in (SceneRecord("s", swapped), SceneRecord("s", [], frames_file=spill)):
         with pytest.raises(ValueError, match=r"ascending view_id \(1 after 2\)"):
-            with ShardWriter(tmp_path / "ds", "train", 0, {}) as writer:
+            with ShardWriter(tmp_path / "ds", "train", 0, dataset_metadata(SPEC)) as writer:
                 writer.add_scene(record)
-        assert not list((tmp_path / "ds" / "train").iterdir()), "a failed shard leaves no file"
+        assert not list((tmp_path / "ds" / "frames" / "train").iterdir()), "a failed shard leaves no file"
 
 
 KILLER = """

@@ -35,7 +35,7 @@ def test_valid_dataset_passes(dataset, capsys):
 
 def test_truncated_shard_is_rejected(dataset, tmp_path):
     root = copy(dataset, tmp_path)
-    shard = root / "train" / "frames-00000.parquet"
+    shard = root / "frames" / "train" / "frames-00000.parquet"
     shard.write_bytes(shard.read_bytes()[:-100])
     problems = validate_dataset(root)
     assert len(problems) == 1 and str(shard) in problems[0] and "truncated" in problems[0]
@@ -47,7 +47,7 @@ def test_wrong_checksum_is_rejected(dataset, tmp_path):
     manifest["splits"]["val"]["shards"][0]["frames"]["sha256"] = "0" * 64
     (root / "manifest.json").write_text(json.dumps(manifest))
     problems = validate_dataset(root)
-    assert len(problems) == 1 and "val/frames-00000.parquet" in problems[0] and "sha256" in problems[0]
+    assert len(problems) == 1 and "frames/val/frames-00000.parquet" in problems[0] and "sha256" in problems[0]
 
 
 def test_unknown_schema_version_is_refused(dataset, tmp_path):
@@ -62,7 +62,7 @@ def test_unknown_schema_version_is_refused(dataset, tmp_path):
 
 def test_shard_with_unknown_schema_version_is_refused(dataset, tmp_path):
     root = copy(dataset, tmp_path)
-    path = root / "val" / "frames-00000.parquet"
+    path = root / "frames" / "val" / "frames-00000.parquet"
     table = pq.read_table(path)
     meta = json.loads(table.schema.metadata[b"usl"])
     meta["schema_version"] = 7
@@ -79,9 +79,9 @@ def test_shard_with_unknown_schema_version_is_refused(dataset, tmp_path):
 
 def test_bad_content_is_named(dataset, tmp_path):
     root = copy(dataset, tmp_path)
-    path = root / "train" / "frames-00000.parquet"
+    path = root / "frames" / "train" / "frames-00000.parquet"
     rows = pq.read_table(path).to_pylist()
-    rows[1]["instances"][0]["bbox"] = [-3.0, 0.0, 10.0, 10.0]
+    rows[1]["instances"][0]["box_xyxy"] = [-3.0, 0.0, 10.0, 10.0]
     rows[2]["cam_to_world"][0] = 2.0
     rows[3]["instances"][1]["category_id"] = 1
     table = pq.read_table(path)
@@ -92,6 +92,6 @@ def test_bad_content_is_named(dataset, tmp_path):
     manifest["splits"]["train"]["shards"][0]["frames"].update(bytes=path.stat().st_size, sha256=sha256_file(path))
     (root / "manifest.json").write_text(json.dumps(manifest))
     problems = "\n".join(validate_dataset(root))
-    assert "scene 's0' view 1: instance 7: bbox" in problems
+    assert "scene 's0' view 1: instance 7: box_xyxy" in problems
     assert "scene 's0' view 2: cam_to_world rotation is not orthonormal" in problems
     assert "scene 's1' view 1: instance 9 is category 2 here but 1 in another view" in problems

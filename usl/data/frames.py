@@ -85,7 +85,7 @@ def _decode_frame(row: dict[str, Any], categories: CategoryIndex, with_image: bo
         cam_to_world=torch.from_numpy(frame_pose(row)),
         instance_ids=torch.tensor([int(i["instance_id"]) for i in instances], dtype=torch.int64),
         labels=torch.tensor([categories.index(int(i["category_id"])) for i in instances], dtype=torch.int64),
-        boxes=torch.tensor([list(i["bbox"]) for i in instances], dtype=torch.float32).reshape(-1, 4),
+        boxes=torch.tensor([list(i["box_xyxy"]) for i in instances], dtype=torch.float32).reshape(-1, 4),
         masks=masks,
         depth_min=torch.tensor([float(i["depth_min"]) for i in instances], dtype=torch.float32),
         depth=depth,

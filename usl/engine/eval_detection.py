@@ -22,6 +22,7 @@ from pycocotools.cocoeval import COCOeval
 
 from usl.model.ops import box_iou
 from usl.records import encode_mask, mask_bbox
+from usl.records.coco import coco_annotation, xyxy_to_xywh
 
 Tensor = torch.Tensor
 IOU_TYPES = ("bbox", "segm")
@@ -43,11 +44,6 @@ def match_detections(boxes: Tensor, scores: Tensor, gt_boxes: Tensor, gt_ids: Te
     return matched
 
 
-def _xywh(box: Sequence[float]) -> list[float]:
-    x0, y0, x1, y1 = (float(v) for v in box)
-    return [x0, y0, x1 - x0, y1 - y0]
-
-
 class CocoDetections:
     """Accumulates ground truth and detections image by image, then runs COCOeval."""
 
@@ -66,14 +62,12 @@ class CocoDetections:
         image_id = len(self.images) + 1
         self.images.append({"id": image_id, "height": int(height), "width": int(width)})
         for label, mask in zip(gt_labels.tolist(), gt_masks.cpu().numpy()):
-            rle = encode_mask(mask)
-            self.gt.append({
-                "id": len(self.gt) + 1, "image_id": image_id, "category_id": self.category_ids[label],
-                "segmentation": rle, "area": float(mask.sum()), "bbox": _xywh(mask_bbox(mask)), "iscrowd": 0,
-            })
+            self.gt.append(coco_annotation(
+                len(self.gt) + 1, image_id, self.category_ids[label], encode_mask(mask), mask.sum(), mask_bbox(mask)
+            ))
         for label, score, box, mask in zip(labels.tolist(), scores.tolist(), boxes.tolist(), masks.cpu().numpy()):
             common = {"image_id": image_id, "category_id": self.category_ids[label], "score": float(score)}
-            self.dt["bbox"].append({**common, "bbox": _xywh(box)})
+            self.dt["bbox"].append({**common, "bbox": xyxy_to_xywh(box)})
             self.dt["segm"].append({**common, "segmentation": encode_mask(mask)})
 
     def evaluate(self) -> dict[str, float]:

@@ -62,7 +62,7 @@ def decode_view_targets(
         width=width,
         instance_ids=torch.tensor([int(i["instance_id"]) for i in instances], dtype=torch.int64, device=device),
         masks=masks.to(device),
-        boxes=torch.tensor([list(i["bbox"]) for i in instances], dtype=torch.float32).reshape(-1, 4).to(device),
+        boxes=torch.tensor([list(i["box_xyxy"]) for i in instances], dtype=torch.float32).reshape(-1, 4).to(device),
         depth_min=torch.tensor([float(i["depth_min"]) for i in instances], dtype=torch.float32, device=device),
     )
 

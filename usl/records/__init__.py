@@ -1,4 +1,5 @@
-"""Sharded Parquet multi-view records (DESIGN.md §3): schema, encoding, writing, reading, validation."""
+"""Sharded Parquet multi-view records (DESIGN.md §3): schema, encoding, writing, reading (v1 and v2),
+validation, migration and COCO export."""
 from .encode import (
     SceneRecord,
     Skip,
@@ -12,6 +13,7 @@ from .encode import (
     frame_K,
     frame_pose,
     frame_row,
+    image_bytes,
     make_instance,
     mask_bbox,
     object_mesh,
@@ -42,6 +44,7 @@ __all__ = [
     "frame_K",
     "frame_pose",
     "frame_row",
+    "image_bytes",
     "load_manifest",
     "make_instance",
     "mask_bbox",

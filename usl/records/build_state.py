@@ -17,14 +17,14 @@ from pathlib import Path
 from typing import Any, Iterable
 
 from .errors import UslError
-from .manifest import MANIFEST, write_json_atomic
+from .atomic import write_json_atomic
+from .schema import shard_file
 from .shards import ShardResult, shard_paths, shard_temp_path, verify_file
 from .tempfiles import temp_path
 
 STATE_DIR = ".build"
 BUILD_FILE = "build.json"
 IDENTITY_KEYS = ("dataset", "fingerprint", "shards")
-MARKER_SUFFIX = ".done.json"
 
 
 def shard_name(split: str, index: int) -> str:
@@ -104,7 +104,7 @@ class BuildState:
     def forget(self) -> None:
         """Undo ``open`` of a fresh folder whose build failed before any shard: a re-run with fixed
         inputs (other arguments) is then not refused."""
-        if not any(self.dir.glob(f"*{MARKER_SUFFIX}")):
+        if not any(path.name != BUILD_FILE for path in self.dir.glob("*.json")):  # no shard marker
             (self.dir / BUILD_FILE).unlink(missing_ok=True)
 
     @property
@@ -112,7 +112,7 @@ class BuildState:
         return self.dir / "spill"
 
     def _marker(self, split: str, index: int) -> Path:
-        return self.dir / f"{shard_name(split, index)}{MARKER_SUFFIX}"
+        return self.dir / f"{shard_name(split, index)}.json"
 
     def marker(self, split: str, index: int) -> dict[str, Any] | None:
         """The shard's recorded result, trusting the marker (it is written after the files)."""
@@ -127,7 +127,9 @@ class BuildState:
         if result is None:
             return None
         files = [result["frames"]] + ([result["objects"]] if result["objects"] else [])
-        if any(verify_file(self.root, info) for info in files):
+        # A shard of an older schema's layout (a build begun by an older usl) is rebuilt, not mixed in.
+        stale_layout = result["frames"]["file"] != shard_file("frames", split, index)
+        if stale_layout or any(verify_file(self.root, info) for info in files):
             self._marker(split, index).unlink(missing_ok=True)
             return None
         return result
@@ -141,6 +143,3 @@ class BuildState:
         """Delete the partial files of one shard that the (gone) process ``token`` was writing."""
         for final in shard_paths(self.root, split, index).values():
             shard_temp_path(final, token).unlink(missing_ok=True)
-
-    def manifest_path(self) -> Path:
-        return self.root / MANIFEST

@@ -1,5 +1,6 @@
-"""``usl-records``: validate a dataset folder, summarise it with counts and a contact sheet, or
-gather build folders made on separate machines into one."""
+"""``usl-records``: validate a dataset folder, summarise it (counts and a contact sheet), migrate a
+schema v1 folder to v2 in place, export a split as COCO instances JSON, or gather build folders
+made on separate machines into one."""
 from __future__ import annotations
 
 import argparse
@@ -8,8 +9,10 @@ import sys
 from pathlib import Path
 
 from .errors import UslError
+from .coco import export_coco
 from .gather import gather
 from .info import contact_sheet, dataset_counts, format_counts
+from .migrate import migrate_dataset
 from .validate import validate_dataset
 
 
@@ -27,6 +30,14 @@ def main(argv: list[str] | None = None) -> int:
     info.add_argument("--scenes", type=int, default=4)
     info.add_argument("--views", type=int, default=4)
     info.add_argument("--json", action="store_true", help="print counts as JSON")
+    migrate = sub.add_parser("migrate", help="convert a schema v1 dataset folder to v2 in place (atomic, resumable)")
+    migrate.add_argument("root", type=Path)
+    coco = sub.add_parser("export-coco", help="one split as COCO instances JSON (pycocotools, detectron2)")
+    coco.add_argument("root", type=Path)
+    coco.add_argument("--split", required=True, help="split to export, e.g. train")
+    coco.add_argument("--out", type=Path, required=True, help="JSON file to write")
+    coco.add_argument("--images-dir", type=Path,
+                      help="also write the images here, as the JSON's file_name values name them (default: JSON only)")
     merge = sub.add_parser("gather", help="merge folders built apart (--num-shards/--shard-index) into one dataset")
     merge.add_argument("parts", nargs="+", type=Path, metavar="PART", help="build folders of one build")
     merge.add_argument("--out", type=Path, required=True, help="dataset folder to create (or complete)")
@@ -47,6 +58,12 @@ def main(argv: list[str] | None = None) -> int:
                 print(problem)
             print(f"{args.root}: {'valid' if not problems else f'{len(problems)} problem(s)'}")
             return 1 if problems else 0
+        if args.command == "migrate":
+            print(migrate_dataset(args.root, progress=True).describe(args.root))
+            return 0
+        if args.command == "export-coco":
+            print(export_coco(args.root, args.split, args.out, args.images_dir, progress=True).describe())
+            return 0
         counts = dataset_counts(args.root)
         print(json.dumps(counts, indent=1) if args.json else format_counts(counts))
         sheet = contact_sheet(args.root, args.sheet or args.root / "contact_sheet.png", args.split, args.scenes, args.views)

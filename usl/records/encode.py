@@ -37,8 +37,18 @@ def encode_image(rgb: np.ndarray, codec: str = "png", quality: int = 95) -> byte
     return buf.tobytes()
 
 
-def decode_image(data: bytes) -> np.ndarray:
-    """Decode PNG/JPEG bytes to an (H, W, 3) RGB uint8 array."""
+def image_bytes(image: bytes | dict[str, Any]) -> bytes:
+    """The encoded bytes of a frame's ``image``: an Image struct ``{bytes, path}`` (v2) or bytes (v1)."""
+    if isinstance(image, dict):
+        if image.get("bytes") is None:
+            raise UslError(f"image struct has no embedded bytes (path {image.get('path')!r}); records embed images")
+        return image["bytes"]
+    return image
+
+
+def decode_image(data: bytes | dict[str, Any]) -> np.ndarray:
+    """Decode a frame's ``image`` (Image struct or PNG/JPEG bytes) to an (H, W, 3) RGB uint8 array."""
+    data = image_bytes(data)
     if not data:
         raise UslError("image bytes are empty")
     buffer = np.frombuffer(data, np.uint8)
@@ -135,7 +145,7 @@ def make_instance(
         "instance_id": int(instance_id),
         "category_id": int(category_id),
         "mask": encode_mask(mask),
-        "bbox": mask_bbox(mask),
+        "box_xyxy": mask_bbox(mask),
         "area": area,
         "depth_min": depth_min,
     }
@@ -152,11 +162,11 @@ def frame_row(
     width: int,
     depth: bytes | None = None,
 ) -> dict[str, Any]:
-    """A frames-table row in schema v1."""
+    """A frames-table row in the current schema; ``image`` is the encoded PNG/JPEG."""
     return {
         "scene_id": str(scene_id),
         "view_id": int(view_id),
-        "image": image,
+        "image": {"bytes": image, "path": None},
         "height": int(height),
         "width": int(width),
         "K": np.asarray(K, dtype=np.float64).reshape(9).tolist(),
@@ -169,7 +179,7 @@ def frame_row(
 def object_row(
     scene_id: str, instance_id: int, category_id: int, source_id: str, vertices: np.ndarray, faces: np.ndarray
 ) -> dict[str, Any]:
-    """An objects-table row in schema v1 (vertices in the world frame, metres)."""
+    """An objects-table row (vertices in the world frame, metres)."""
     return {
         "scene_id": str(scene_id),
         "instance_id": int(instance_id),

@@ -18,7 +18,7 @@ from tqdm import tqdm
 from .build_state import BuildState, identity_difference, read_build_file
 from .claims import Owner
 from .errors import UslError
-from .manifest import build_manifest, write_json_atomic
+from .manifest import build_manifest, publish_dataset
 from .shards import ShardResult, size_problem
 from .tempfiles import temp_path
 
@@ -87,5 +87,5 @@ def gather(parts: list[Path], out: Path, progress: bool = False) -> GatherSummar
             summary.copied += 1
         if not summary.missing:
             results = [state.marker(split, index) for split, index in state.shards]
-            write_json_atomic(state.manifest_path(), build_manifest(first["spec"], results, creator, first["fingerprint"]))
+            publish_dataset(out, build_manifest(first["spec"], results, creator, first["fingerprint"]))
     return summary

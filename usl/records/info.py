@@ -63,7 +63,7 @@ def overlay_instances(image: np.ndarray, instances: list[dict[str, Any]], names:
         out[mask] = 0.5 * out[mask] + 0.5 * colour
     out = out.astype(np.uint8)
     for colour, inst in zip(colours, instances):
-        x0, y0, x1, y1 = (int(round(v)) for v in inst["bbox"])
+        x0, y0, x1, y1 = (int(round(v)) for v in inst["box_xyxy"])
         cv2.rectangle(out, (x0, y0), (x1 - 1, y1 - 1), tuple(int(c) for c in colour), 1)
         label = f"{names.get(inst['category_id'], inst['category_id'])}#{inst['instance_id']}"
         cv2.putText(out, label, (x0 + 2, max(y0 + 10, 10)), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (255, 255, 255), 1, cv2.LINE_AA)

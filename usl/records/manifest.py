@@ -2,27 +2,25 @@
 from __future__ import annotations
 
 import json
-import os
 from pathlib import Path, PurePosixPath
 from typing import Any
 
+from .atomic import write_json_atomic
+from .card import write_dataset_card
 from .errors import UslError
 from .schema import SCHEMA_VERSION, check_version
-from .tempfiles import temp_path
 
 MANIFEST = "manifest.json"
 
 
-def write_json_atomic(path: Path, data: Any) -> None:
-    """Write JSON to a temp file, fsync, rename: readers never see a half-written file."""
-    path = Path(path)
-    tmp = temp_path(path, hidden=True)
-    with open(tmp, "w") as f:
-        json.dump(data, f, indent=1, sort_keys=False)
-        f.write("\n")
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
+def usl_version() -> str:
+    """The installed usl's version, for provenance records ("unknown" when run from a source tree)."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("usl")
+    except PackageNotFoundError:
+        return "unknown"
 
 
 def dataset_metadata(spec: dict[str, Any]) -> dict[str, Any]:
@@ -57,6 +55,12 @@ def build_manifest(
         "creator": creator,
         "fingerprint": fingerprint,
     }
+
+
+def publish_dataset(root: str | Path, manifest: dict[str, Any]) -> None:
+    """The last step of a build or migration: the dataset card, then manifest.json (the commit point)."""
+    write_dataset_card(root, manifest)
+    write_json_atomic(Path(root) / MANIFEST, manifest)
 
 
 def load_manifest(root: str | Path) -> dict[str, Any]:

@@ -20,6 +20,7 @@ from .errors import UslError, one_line
 from .manifest import load_manifest
 from .schema import read_metadata
 from .shards import VERIFY_MODES, open_shard, verify_file
+from .upgrade import upgrade_table
 
 
 @dataclass(frozen=True)
@@ -30,12 +31,16 @@ class SceneLocation:
 
 
 class _OpenShard:
-    """A verified Parquet file plus the first row of each row group, for reading a row range cheaply."""
+    """A verified Parquet file plus the first row of each row group, for reading a row range cheaply.
 
-    def __init__(self, root: Path, info: dict[str, Any]):
+    Rows come back in the current schema whatever version the file was written in.
+    """
+
+    def __init__(self, root: Path, info: dict[str, Any], table: str):
         self.path = root / info["file"]
         self.file: pq.ParquetFile = open_shard(root, info)
-        read_metadata(self.file.schema_arrow, str(self.path))
+        self.table = table
+        self.version = read_metadata(self.file.schema_arrow, str(self.path))["schema_version"]
         meta = self.file.metadata
         self.group_starts = np.cumsum([0] + [meta.row_group(i).num_rows for i in range(meta.num_row_groups)])
 
@@ -47,11 +52,11 @@ class _OpenShard:
         g1 = bisect_right(self.group_starts, max(rows)) - 1
         table = self.file.read_row_groups(list(range(g0, g1 + 1)), columns=list(columns) if columns else None)
         base = int(self.group_starts[g0])
-        return table.take([r - base for r in rows]).to_pylist()
+        return upgrade_table(table.take([r - base for r in rows]), self.table, self.version).to_pylist()
 
     def read_all(self) -> list[dict[str, Any]]:
         try:
-            return self.file.read().to_pylist()
+            return upgrade_table(self.file.read(), self.table, self.version).to_pylist()
         except Exception as exc:  # corrupt pages: checksum, decompression or decoding errors
             raise UslError(f"{self.path}: cannot read ({one_line(exc)})") from exc
 
@@ -59,11 +64,12 @@ class _OpenShard:
 class RecordsDataset:
     """One split of a dataset folder, indexed by scene.
 
-    ``read_scene(scene_id)`` returns that scene's frame rows (dicts in schema v1, sorted by
-    view_id); ``views`` picks rows by position within the scene. Decode fields with
-    ``usl.records.decode_image`` / ``decode_depth`` / ``decode_mask``, naming ``source(scene_id)``
-    in errors. Every shard is checked against the manifest when first opened (its size); with
-    ``verify="sha256"`` every shard's checksum is checked once, here, before any worker reads it.
+    ``read_scene(scene_id)`` returns that scene's frame rows (dicts in the current schema, v2,
+    also for a v1 dataset; sorted by view_id); ``views`` picks rows by position within the scene.
+    Decode fields with ``usl.records.decode_image`` / ``decode_depth`` / ``decode_mask``, naming
+    ``source(scene_id)`` in errors. Every shard is checked against the manifest when first opened
+    (its size); with ``verify="sha256"`` every shard's checksum is checked once, here, before any
+    worker reads it.
     """
 
     def __init__(self, root: str | Path, split: str, verify: str = "size"):
@@ -106,7 +112,7 @@ class RecordsDataset:
             info = self.shards[shard_pos][table]
             if info is None:
                 raise UslError(f"{self.root}: split {self.split!r} has no {table} table")
-            self._open[key] = _OpenShard(self.root, info)
+            self._open[key] = _OpenShard(self.root, info, table)
         return self._open[key]
 
     def source(self, scene_id: str) -> str:

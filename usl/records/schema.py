@@ -11,9 +11,11 @@ from data_specs import load_schema_spec
 
 from .errors import UslError
 
-SCHEMA_VERSION = 1
-KNOWN_VERSIONS = (1,)
+SCHEMA_VERSION = 2  # what writers produce; readers also read every version in KNOWN_VERSIONS
+KNOWN_VERSIONS = (1, 2)
 METADATA_KEY = b"usl"
+HF_METADATA_KEY = b"huggingface"  # Hugging Face datasets reads its features from here
+DOC_KEY = b"doc"
 
 _SCALARS = {
     "string": pa.string(),
@@ -22,34 +24,87 @@ _SCALARS = {
     "int64": pa.int64(),
     "float32": pa.float32(),
     "float64": pa.float64(),
+    # Hugging Face's Image and ClassLabel features, with the Arrow types `datasets` gives them.
+    "image": pa.struct([pa.field("bytes", pa.binary()), pa.field("path", pa.string())]),
+    "class_label": pa.int64(),
 }
 
 
-def _arrow_type(spec: Any) -> pa.DataType:
+def _arrow_type(spec: Any, all_nullable: bool) -> pa.DataType:
     if isinstance(spec, str):
         return _SCALARS[spec]
     if "list" in spec:
-        item = _arrow_type(spec["list"])
+        item = _arrow_type(spec["list"], all_nullable)
         return pa.list_(item, spec["size"]) if "size" in spec else pa.list_(item)
     if "struct" in spec:
-        return pa.struct([_arrow_field(f) for f in spec["struct"]])
+        return pa.struct([_arrow_field(f, all_nullable) for f in spec["struct"]])
     raise ValueError(f"unknown type spec {spec!r} in the record schema")
 
 
-def _arrow_field(spec: dict[str, Any]) -> pa.Field:
-    return pa.field(spec["name"], _arrow_type(spec["type"]), nullable=bool(spec.get("nullable", False)))
+def _arrow_field(spec: dict[str, Any], all_nullable: bool) -> pa.Field:
+    nullable = all_nullable or bool(spec.get("nullable", False))
+    metadata = {DOC_KEY: spec["doc"].encode()} if "doc" in spec else None
+    return pa.field(spec["name"], _arrow_type(spec["type"], all_nullable), nullable=nullable, metadata=metadata)
 
 
 @lru_cache(maxsize=None)
 def table_schema(table: str, version: int = SCHEMA_VERSION) -> pa.Schema:
-    """Arrow schema of ``frames`` or ``objects`` without dataset metadata."""
+    """Arrow schema of ``frames`` or ``objects`` (field docs as field metadata, no dataset metadata).
+
+    From v2 on every Arrow field is nullable: Hugging Face datasets ignores its features for a
+    non-nullable field. Which fields are required is the spec's business (``required_fields``).
+    """
     spec = load_schema_spec(version)["tables"][table]
-    return pa.schema([_arrow_field(f) for f in spec["fields"]])
+    return pa.schema([_arrow_field(f, version >= 2) for f in spec["fields"]])
 
 
-def with_metadata(schema: pa.Schema, metadata: dict[str, Any]) -> pa.Schema:
-    """Attach the dataset metadata (name, schema version, categories, layout) under key ``usl``."""
-    return schema.with_metadata({METADATA_KEY: json.dumps(metadata, sort_keys=True).encode()})
+def required_fields(table: str, version: int = SCHEMA_VERSION) -> list[str]:
+    """Top-level fields that must never be null."""
+    return [f["name"] for f in load_schema_spec(version)["tables"][table]["fields"] if not f.get("nullable", False)]
+
+
+def shard_file(table: str, split: str, index: int) -> str:
+    """Where a shard of ``table`` lives, relative to the dataset root (the path manifest.json lists)."""
+    return load_schema_spec(SCHEMA_VERSION)["shard_path"].format(table=table, split=split, index=index)
+
+
+def class_label_names(categories: list[dict[str, Any]]) -> list[str]:
+    """ClassLabel names indexed by category id; ids no category uses are named ``__unused_<id>__``."""
+    by_id = {int(c["id"]): str(c["name"]) for c in categories}
+    return [by_id.get(i, f"__unused_{i}__") for i in range(max(by_id, default=-1) + 1)]
+
+
+def _hf_feature(spec: Any, names: list[str]) -> Any:
+    """A field type as Hugging Face ``Features.to_dict`` writes it, in the forms every datasets
+    release since 2.x reads: ``Sequence`` with ``length`` for fixed lists, ``[feature]`` for lists."""
+    if spec == "image":
+        return {"_type": "Image"}
+    if spec == "class_label":
+        return {"names": names, "_type": "ClassLabel"}
+    if isinstance(spec, str):
+        return {"dtype": spec, "_type": "Value"}
+    if "list" in spec:
+        item = _hf_feature(spec["list"], names)
+        return {"feature": item, "length": spec["size"], "_type": "Sequence"} if "size" in spec else [item]
+    return {f["name"]: _hf_feature(f["type"], names) for f in spec["struct"]}
+
+
+def hf_features(table: str, categories: list[dict[str, Any]]) -> dict[str, Any]:
+    """Hugging Face features of a v2 table: image decodes to PIL, category ids to class names."""
+    names = class_label_names(categories)
+    return {f["name"]: _hf_feature(f["type"], names) for f in load_schema_spec(SCHEMA_VERSION)["tables"][table]["fields"]}
+
+
+def dataset_schema(table: str, metadata: dict[str, Any]) -> pa.Schema:
+    """The schema a shard of ``table`` is written with: dataset metadata under ``usl`` (name, schema
+    version, categories, layout) and the Hugging Face features under ``huggingface``."""
+    features = {"info": {"features": hf_features(table, metadata["categories"])}}
+    return table_schema(table).with_metadata(
+        {
+            METADATA_KEY: json.dumps(metadata, sort_keys=True).encode(),
+            HF_METADATA_KEY: json.dumps(features).encode(),
+        }
+    )
 
 
 def read_metadata(schema: pa.Schema, path: str) -> dict[str, Any]:

@@ -5,18 +5,23 @@ where it applies, the scene and view, so a broken conversion can be fixed in one
 """
 from __future__ import annotations
 
+import json
 from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
+import pyarrow as pa
 import pyarrow.parquet as pq
+import yaml
 from tqdm import tqdm
 
+from .card import CARD, card_configs
 from .encode import decode_image, decode_mask, encode_mask
 from .errors import UslError, one_line
 from .manifest import load_manifest
-from .schema import read_metadata, table_schema
+from .schema import HF_METADATA_KEY, SCHEMA_VERSION, dataset_schema, read_metadata, required_fields, table_schema
 from .shards import verify_file
+from .upgrade import upgrade_table
 
 ORTHONORMAL_TOL = 1e-4
 MAX_PROBLEMS_PER_SHARD = 50
@@ -42,6 +47,9 @@ def _check_camera(row: dict[str, Any]) -> list[str]:
 
 def _check_instance(inst: dict[str, Any], height: int, width: int) -> list[str]:
     where = f"instance {inst['instance_id']}"
+    missing = sorted(k for k, v in inst.items() if v is None)
+    if missing:
+        return [f"{where}: null {', '.join(missing)}"]
     if list(inst["mask"]["size"]) != [height, width]:
         return [f"{where}: mask size {inst['mask']['size']} != image size [{height}, {width}]"]
     try:
@@ -53,27 +61,48 @@ def _check_instance(inst: dict[str, Any], height: int, width: int) -> list[str]:
         problems.append(f"{where}: mask RLE is corrupt (it does not re-encode to itself)")
     if int(mask.sum()) != inst["area"]:
         problems.append(f"{where}: area {inst['area']} != mask pixel count {int(mask.sum())}")
-    x0, y0, x1, y1 = inst["bbox"]
+    x0, y0, x1, y1 = inst["box_xyxy"]
     if not (0 <= x0 < x1 <= width and 0 <= y0 < y1 <= height):
-        problems.append(f"{where}: bbox {inst['bbox']} is not inside the {width}x{height} image")
+        problems.append(f"{where}: box_xyxy {inst['box_xyxy']} is not inside the {width}x{height} image")
     return problems
 
 
-def _check_frames(path: Path, shard: dict[str, Any], categories: set[int], decode_images: bool) -> list[str]:
-    problems: list[str] = []
+def _open_table(path: Path, table: str) -> tuple[pq.ParquetFile, int, list[str]]:
+    """The file, its schema version, and what is wrong with its Arrow schema or metadata."""
     file = pq.ParquetFile(path, page_checksum_verification=True)
-    read_metadata(file.schema_arrow, str(path))
-    if not file.schema_arrow.remove_metadata().equals(table_schema("frames")):
-        return [f"{path}: Arrow schema differs from the frames schema v1"]
+    meta = read_metadata(file.schema_arrow, str(path))
+    version = meta["schema_version"]
+    if not file.schema_arrow.remove_metadata().equals(table_schema(table, version)):
+        return file, version, [f"{path}: Arrow schema differs from the {table} schema v{version}"]
+    if version == SCHEMA_VERSION:
+        stored = json.loads((file.schema_arrow.metadata or {}).get(HF_METADATA_KEY, b"null"))
+        if stored != json.loads(dataset_schema(table, meta).metadata[HF_METADATA_KEY]):
+            return file, version, [f"{path}: '{HF_METADATA_KEY.decode()}' features metadata missing or stale"]
+    return file, version, []
+
+
+def _null_fields(row: dict[str, Any], table: str, version: int) -> list[str]:
+    missing = [name for name in required_fields(table, version) if name in row and row[name] is None]
+    return [f"null {', '.join(missing)}"] if missing else []
+
+
+def _check_frames(path: Path, shard: dict[str, Any], categories: set[int], decode_images: bool) -> list[str]:
+    file, version, problems = _open_table(path, "frames")
+    if problems:
+        return problems
     expected = {scene: (first, count) for scene, first, count in shard["scenes"]}
     seen: dict[str, list[int]] = {}
     categories_of: dict[tuple[str, int], int] = {}
     previous: tuple[str, int] | None = None
     row_index = 0
     for batch in file.iter_batches(batch_size=64):
-        for row in batch.to_pylist():
+        for row in upgrade_table(pa.Table.from_batches([batch]), "frames", version).to_pylist():
             key = (row["scene_id"], row["view_id"])
             where = f"{path}: scene {row['scene_id']!r} view {row['view_id']}"
+            nulls = _null_fields(row, "frames", version)
+            if nulls:
+                problems += [f"{where}: {p}" for p in nulls]
+                continue
             if previous is not None and key <= previous:
                 problems.append(f"{where}: rows not sorted by (scene_id, view_id) or duplicated")
             if previous is not None and row["scene_id"] != previous[0] and row["scene_id"] in seen:
@@ -112,16 +141,18 @@ def _check_frames(path: Path, shard: dict[str, Any], categories: set[int], decod
 
 
 def _check_objects(path: Path, frames_path: Path) -> list[str]:
-    file = pq.ParquetFile(path, page_checksum_verification=True)
-    read_metadata(file.schema_arrow, str(path))
-    if not file.schema_arrow.remove_metadata().equals(table_schema("objects")):
-        return [f"{path}: Arrow schema differs from the objects schema v1"]
-    objects = file.read(columns=["scene_id", "instance_id", "category_id", "faces", "vertices"]).to_pylist()
+    file, version, problems = _open_table(path, "objects")
+    if problems:
+        return problems
+    objects = file.read().to_pylist()
     frames = pq.read_table(frames_path, columns=["scene_id", "instances"]).to_pylist()
     seen = {(f["scene_id"], i["instance_id"]): i["category_id"] for f in frames for i in f["instances"]}
-    problems = []
     for obj in objects:
         where = f"{path}: scene {obj['scene_id']!r} object {obj['instance_id']}"
+        nulls = _null_fields(obj, "objects", version)
+        if nulls:
+            problems += [f"{where}: {p}" for p in nulls]
+            continue
         verts = np.asarray(obj["vertices"], dtype=np.float64).reshape(-1, 3)
         faces = np.asarray(obj["faces"], dtype=np.int64).reshape(-1, 3)
         if len(verts) == 0 or len(faces) == 0 or not np.isfinite(verts).all():
@@ -134,6 +165,23 @@ def _check_objects(path: Path, frames_path: Path) -> list[str]:
     return problems
 
 
+def _check_card(root: Path, manifest: dict[str, Any]) -> list[str]:
+    """A v2 dataset has a dataset card whose Hugging Face configs match the manifest."""
+    if manifest["schema_version"] < 2:
+        return []
+    path = root / CARD
+    if not path.exists():
+        return [f"{path}: missing dataset card (usl-records migrate {root} writes it)"]
+    text = path.read_text(errors="replace")
+    try:
+        front = yaml.safe_load(text.split("---", 2)[1]) if text.startswith("---") else None
+    except yaml.YAMLError:
+        front = None
+    if not isinstance(front, dict) or front.get("configs") != card_configs(manifest):
+        return [f"{path}: YAML front matter 'configs' missing or not matching manifest.json"]
+    return []
+
+
 def validate_dataset(
     root: str | Path, splits: list[str] | None = None, decode_images: bool = True, progress: bool = False
 ) -> list[str]:
@@ -144,7 +192,7 @@ def validate_dataset(
     except UslError as exc:
         return [str(exc)]
     categories = {int(c["id"]) for c in manifest["categories"]}
-    problems: list[str] = []
+    problems: list[str] = _check_card(root, manifest)
     jobs: list[tuple[str, Callable[[], list[str]]]] = []
     for split, entry in manifest["splits"].items():
         if splits and split not in splits:

@@ -73,7 +73,7 @@ def render_dynamic(
         settings: soft rasterizer parameters (the paper: the defaults).
         padding: growth of the union box, as a fraction of its longer side, on every side.
         min_size: smallest window side in image pixels.
-        true_boxes: (P, 4) boxes of the true masks (e.g. the records' ``bbox``), to skip
+        true_boxes: (P, 4) boxes of the true masks (e.g. the records' ``box_xyxy``), to skip
             computing them from the masks; they must contain the masks' True pixels.
     """
     check_packed_inputs(verts, faces, face_window, K, "render_dynamic")

@@ -41,11 +41,12 @@ def test_filters_stride_and_stuff_exclusion(inputs, tmp_path):
     out = convert(inputs, tmp_path / "records", "--blacklist", "ai_002_001", "--frame-stride", "2",
                   "--exclude-categories", "stuff", "--resolution", "48x36")
     assert validate_dataset(out) == []
+    assert load_manifest(out)["schema_version"] == 2 and (out / "frames" / "train").is_dir()
     (rows,) = all_rows(out).values()
     assert [(r["scene_id"], r["view_id"]) for r in rows] == [("ai_001_001/cam_00", 0), ("ai_001_001/cam_00", 4)]
     categories = {i["category_id"] for r in rows for i in r["instances"]}
     assert categories and not categories & {1, 2, 22}
-    assert rows[0]["image"][:2] == b"\xff\xd8"  # JPEG by default
+    assert rows[0]["image"]["bytes"][:2] == b"\xff\xd8"  # JPEG by default
     assert decode_image(rows[0]["image"]).shape == (36, 48, 3)
     only_val = convert(inputs, tmp_path / "val", "--splits", "val", "--cameras", "cam_00")
     assert RecordsDataset(only_val, "val").scene_ids == ["ai_002_001/cam_00"]

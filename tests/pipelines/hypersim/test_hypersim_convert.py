@@ -173,7 +173,7 @@ def test_masks_categories_boxes_and_nearest_depths_match_the_truth(native, input
                 assert (decode_mask(inst["mask"]) == mask).all()
                 assert inst["category_id"] == categories[instance_id]
                 rows_, cols_ = np.nonzero(mask)
-                assert inst["bbox"] == [cols_.min(), rows_.min(), cols_.max() + 1, rows_.max() + 1]
+                assert inst["box_xyxy"] == [cols_.min(), rows_.min(), cols_.max() + 1, rows_.max() + 1]
                 true_min = np.nanmin(np.where(np.isfinite(depth) & mask, truth.planar, np.nan))
                 assert abs(inst["depth_min"] - true_min) <= tolerance(true_min)
             assert 12 not in got  # the unlabelled box is never an instance

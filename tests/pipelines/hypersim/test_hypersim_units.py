@@ -223,7 +223,7 @@ def test_instance_entries_equal_make_instance(seed):
         expected = make_instance(entry["instance_id"], 3, labels == entry["instance_id"], depth)
         got = dict(entry, category_id=3)
         assert got.keys() == expected.keys()
-        for key in ("instance_id", "mask", "bbox", "area"):
+        for key in ("instance_id", "mask", "box_xyxy", "area"):
             assert got[key] == expected[key], key
         assert (math.isnan(got["depth_min"]) and math.isnan(expected["depth_min"])) or (
             got["depth_min"] == expected["depth_min"])

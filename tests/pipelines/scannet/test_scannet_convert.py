@@ -57,6 +57,7 @@ def track_frames(dataset: RecordsDataset, scene_id: str) -> dict[int, list[int]]
 def test_records_are_valid_and_complete(converted, synthetic):
     assert validate_dataset(converted) == []
     manifest = load_manifest(converted)
+    assert manifest["schema_version"] == 2 and (converted / "frames" / "train").is_dir() and (converted / "README.md").exists()
     assert set(manifest["splits"]) == {"train", "val"}
     assert skips_of(converted) == {SKIP_POSE: 2 * len(synthetic.lost)}
     train = RecordsDataset(converted, "train")
@@ -110,7 +111,7 @@ def test_native_size_keeps_the_stored_jpeg_and_labels_give_ground_truth_tracks(s
     rows = RecordsDataset(out, "train").read_scene(SENS_SCENE)
     for row in rows[::20]:
         frame = synthetic.frames[row["view_id"]]
-        assert row["image"] == frame.color and (row["height"], row["width"]) == (72, 96)
+        assert row["image"]["bytes"] == frame.color and (row["height"], row["width"]) == (72, 96)
         for inst in row["instances"]:  # ScanNet's instance ids become the instance ids
             np.testing.assert_array_equal(decode_mask(inst["mask"]), frame.instances == inst["instance_id"])
     assert sorted(track_frames(RecordsDataset(out, "train"), SENS_SCENE)) == [1, 2, 3]

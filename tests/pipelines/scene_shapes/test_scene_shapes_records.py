@@ -97,6 +97,10 @@ def test_cameras_are_rigid_and_share_the_stored_intrinsics(tiny_dataset):
 
 def test_dataset_passes_the_record_validator(tiny_dataset):
     assert validate_dataset(tiny_dataset) == []
+    splits = sorted(load_manifest(tiny_dataset)["splits"])
+    assert load_manifest(tiny_dataset)["schema_version"] == 2 and (tiny_dataset / "README.md").exists()
+    assert sorted(p.name for p in (tiny_dataset / "frames").iterdir()) == splits
+    assert sorted(p.name for p in (tiny_dataset / "objects").iterdir()) == splits
 
 
 def test_splits_are_disjoint_in_models_and_scenes(tiny_dataset):
