@@ -17,4 +17,4 @@ if ! $PY -c 'import torch' 2>/dev/null; then
   $PY -m pip install -q --root-user-action=ignore torch==2.13.0
 fi
 echo "[setup] installing usl (editable) and its dependencies"
-$PY -m pip install -q --root-user-action=ignore -e ".[test]"
+$PY -m pip install -q --root-user-action=ignore -e ".[test,ray]"

@@ -45,9 +45,11 @@ class DataConfig:
     max_size: int = 0  # resize so the longer image side is at most this; 0 keeps the stored size
     max_objects: int = 0  # objects of the input view in L_3D (a random subset); 0 keeps all
     num_workers: int = 2  # data loader processes (0: load in the training process)
+    verify: str = "size"  # shard checks on open: "size" (a stat) or "sha256" (reads each shard once more)
 
     def __post_init__(self) -> None:
         _check_choice("data.view_sampling", self.view_sampling, ("uniform", "time_distance"))
+        _check_choice("data.verify", self.verify, ("size", "sha256"))
         _check_positive("data.num_views", self.num_views)
         _check_positive("data.input_view_stride", self.input_view_stride)
 
@@ -195,11 +197,18 @@ class TrainConfig:
     checkpoint_every: int = 1000  # iterations between checkpoints (and one at the end)
     keep_checkpoints: int = 3  # newest checkpoints kept in the run folder (0 keeps all)
     cpu_threads: int = 0  # torch intra-op threads per process; 0 leaves torch's default
+    # Stop when more than this fraction of the last ``skip_window`` steps were skipped as non-finite
+    # (corrupt data or divergence, not a rare outlier); 1.0 never stops.
+    max_skipped_fraction: float = 0.25
+    skip_window: int = 20  # recent steps the skipped fraction is counted over
 
     def __post_init__(self) -> None:
         _check_choice("train.amp", self.amp, ("bfloat16", "float16", "none"))
         _check_choice("train.device", self.device, ("auto", "cpu", "cuda"))
         _check_positive("train.batch_size", self.batch_size)
+        _check_positive("train.skip_window", self.skip_window)
+        if not 0.0 <= self.max_skipped_fraction <= 1.0:
+            raise ConfigError(f"train.max_skipped_fraction: {self.max_skipped_fraction} is not in [0, 1]")
 
 
 @dataclass

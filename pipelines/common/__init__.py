@@ -9,6 +9,7 @@ from .driver import (
     creator_from_args,
     fingerprint_from_args,
     run_build,
+    scratch_dir,
 )
 from .spill import frame_sink
 
@@ -23,4 +24,5 @@ __all__ = [
     "fingerprint_from_args",
     "frame_sink",
     "run_build",
+    "scratch_dir",
 ]

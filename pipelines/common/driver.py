@@ -2,30 +2,34 @@
 
 A pipeline supplies an ordered list of ``ShardPlan`` (which scenes go into which shard, fixed by
 its arguments alone) and a picklable ``build_scene(unit) -> SceneRecord``. Output is then the same
-whatever ``--workers`` is, and a re-run with the same arguments keeps every finished shard.
+whatever ``--workers`` or ``--executor`` is, and a re-run with the same arguments keeps every
+finished shard. Any number of runs may share one ``--out`` (``usl.records.claims``): each claims
+a shard before building it, and whichever finishes the last shard writes the manifest.
 A ``build_scene`` that writes its rows through ``frame_sink`` streams long scenes via spill files,
 so neither the worker nor this process ever holds a whole long scene.
 """
 from __future__ import annotations
 
 import argparse
-import multiprocessing as mp
 import sys
 import time
 from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
-from typing import Any, Callable, Iterator
+from typing import Any, Callable, Generator, Iterator
 
 from tqdm import tqdm
 
 from usl.cli_common import common_options
-from usl.records.encode import SceneRecord
-from usl.records.errors import UslError
+from usl.records.build_state import STATE_DIR, BuildState, shard_name
+from usl.records.claims import STALE_AFTER_SECONDS, Owner
+from usl.records.encode import SceneRecord, Skip
+from usl.records.errors import UslError, one_line
 from usl.records.manifest import build_manifest, dataset_metadata, publish_dataset, usl_version
-from usl.records.shards import ShardWriter, remove_stale_temp_files
+from usl.records.shards import ShardWriter
+from usl.records.tempfiles import process_token
 
-from .build_state import BuildState
+from .executors import EXECUTORS, make_executor, ordered_results
 from .spill import init_build_process, set_spill_dir
 
 
@@ -43,6 +47,10 @@ class BuildOptions:
     num_shards: int = 1
     shard_index: int = 0
     progress: bool = True
+    executor: str = "local"
+    ray_address: str | None = None
+    skip_bad_scenes: bool = False
+    claim_timeout: float = STALE_AFTER_SECONDS
 
 
 @dataclass
@@ -52,6 +60,7 @@ class BuildSummary:
     kept_shards: int = 0
     built_shards: int = 0
     skipped: int = 0
+    failed_scenes: int = 0
     seconds: float = 0.0
     manifest_written: bool = False
     pending_shards: list[str] = field(default_factory=list)
@@ -65,9 +74,12 @@ class BuildSummary:
             f"built {self.built_shards} shard(s), kept {self.kept_shards}: {self.scenes} scenes, {self.frames} views "
             f"in {self.seconds:.1f} s ({self.frames_per_second:.2f} views/s), {self.skipped} skipped"
         )
+        if self.failed_scenes:
+            text += f" ({self.failed_scenes} scene(s) not converted, reasons in the manifest's skips)"
         if self.manifest_written:
             return text + "; manifest.json written"
-        return text + f"; manifest not written yet: {len(self.pending_shards)} shard(s) still to build elsewhere"
+        return text + (f"; manifest not written yet: {len(self.pending_shards)} shard(s) still to build by other "
+                       "runs on this --out (the last to finish writes it), or re-run to finish them")
 
 
 def build_common_options(seed: str | None = None) -> argparse.ArgumentParser:
@@ -77,10 +89,20 @@ def build_common_options(seed: str | None = None) -> argparse.ArgumentParser:
                           workers="processes building scenes in parallel", seed=seed, quiet="no progress bar")
 
 
-def add_build_arguments(parser: argparse.ArgumentParser) -> None:
-    """Options of the build driver itself (with ``build_common_options`` as the parser's parent)."""
+def add_build_arguments(parser: argparse.ArgumentParser, skip_bad_scenes: bool = False) -> None:
+    """Options of the build driver itself (with ``build_common_options`` as the parser's parent);
+    ``skip_bad_scenes`` is that pipeline's default."""
     parser.add_argument("--num-shards", type=int, default=1, help="split the build across this many machines")
     parser.add_argument("--shard-index", type=int, default=0, help="which part of --num-shards this run builds")
+    parser.add_argument("--executor", choices=EXECUTORS, default="local",
+                        help="local: this machine (--workers processes); ray: Ray tasks on a cluster, same output")
+    parser.add_argument("--ray-address", default=None,
+                        help="Ray cluster to use with --executor ray (e.g. auto, ray://head:10001); "
+                             "default: start a local Ray instance")
+    parser.add_argument("--skip-bad-scenes", action=argparse.BooleanOptionalAction, default=skip_bad_scenes,
+                        help="record a scene that fails to convert as a skip (reason in the manifest) and go on")
+    parser.add_argument("--claim-timeout", type=float, default=STALE_AFTER_SECONDS,
+                        help="seconds without a heartbeat after which another machine's shard claim is taken over")
 
 
 def build_options_from_args(args: argparse.Namespace) -> BuildOptions:
@@ -88,7 +110,17 @@ def build_options_from_args(args: argparse.Namespace) -> BuildOptions:
         raise UslError(f"--workers must be >= 1, got {args.workers}")
     if not 0 <= args.shard_index < args.num_shards:
         raise UslError(f"--shard-index must lie in [0, {args.num_shards}), got {args.shard_index}")
-    return BuildOptions(args.out, args.workers, args.num_shards, args.shard_index, not args.quiet)
+    if args.claim_timeout <= 0:
+        raise UslError(f"--claim-timeout must be > 0 seconds, got {args.claim_timeout}")
+    if args.ray_address is not None and args.executor != "ray":
+        raise UslError("--ray-address needs --executor ray")
+    return BuildOptions(args.out, args.workers, args.num_shards, args.shard_index, not args.quiet, args.executor,
+                        args.ray_address, args.skip_bad_scenes, args.claim_timeout)
+
+
+# Options that say how to run, not what to build: a run may change them and still resume or join.
+RUN_OPTIONS = {"out", "workers", "num_shards", "shard_index", "quiet", "executor", "ray_address",
+               "skip_bad_scenes", "claim_timeout"}
 
 
 def _jsonable(value: Any) -> Any:
@@ -102,8 +134,7 @@ def _jsonable(value: Any) -> Any:
 
 def fingerprint_from_args(args: argparse.Namespace) -> dict[str, Any]:
     """Arguments that determine the output: all but the ones that only say how to run."""
-    ignored = {"out", "workers", "num_shards", "shard_index", "quiet"}
-    return {k: _jsonable(v) for k, v in sorted(vars(args).items()) if k not in ignored}
+    return {k: _jsonable(v) for k, v in sorted(vars(args).items()) if k not in RUN_OPTIONS}
 
 
 def creator_from_args(command: str, args: argparse.Namespace) -> dict[str, Any]:
@@ -115,16 +146,65 @@ def creator_from_args(command: str, args: argparse.Namespace) -> dict[str, Any]:
     }
 
 
-def _scene_stream(
-    build_scene: Callable[[Any], SceneRecord], units: list[Any], workers: int, initializer: Callable[[], None]
-) -> Iterator[SceneRecord]:
-    if workers == 1 or len(units) <= 1:
-        initializer()
-        yield from map(build_scene, units)
-        return
-    # spawn: no forked GL contexts, torch thread pools or open file handles in the workers.
-    with mp.get_context("spawn").Pool(workers, initializer=initializer) as pool:
-        yield from pool.imap(build_scene, units, chunksize=1)
+def scratch_dir(out: Path) -> Path:
+    """This process's private working folder inside a build (made by ``run_build``'s ``prepare``,
+    removed when the run ends, reaped by a later run if this one is killed)."""
+    return Path(out) / STATE_DIR / f"scratch-{process_token()}"
+
+
+FAILED_SCENE = "scene not converted: "  # reason prefix of a --skip-bad-scenes skip
+
+
+@dataclass
+class BuiltScene:
+    record: SceneRecord
+    error: str | None = None  # set when the scene failed and was recorded as a skip
+
+
+@dataclass(frozen=True)
+class SceneBuilder:
+    """``build_scene`` as the executors run it: with ``skip_bad``, a failing scene becomes a skip."""
+
+    build_scene: Callable[[Any], SceneRecord]
+    skip_bad: bool
+
+    def __call__(self, unit: Any) -> BuiltScene:
+        if not self.skip_bad:
+            return BuiltScene(self.build_scene(unit))
+        try:
+            return BuiltScene(self.build_scene(unit))
+        except Exception as exc:  # any failure of one scene's input; the message says which file
+            scene_id = str(getattr(unit, "scene_id", unit))
+            error = f"{type(exc).__name__}: {one_line(exc)}" if not isinstance(exc, UslError) else one_line(exc)
+            path = str(getattr(unit, "scene_dir", "") or scene_id)
+            return BuiltScene(SceneRecord(scene_id, [], skips=[Skip(f"{FAILED_SCENE}{error}", path)]), error)
+
+
+def _claimed_units(todo: list[ShardPlan], owner: Owner, state: BuildState) -> Iterator[tuple[tuple[ShardPlan, int], Any]]:
+    """Units of the shards this run wins the claim of, claimed one shard at a time as they are drawn.
+
+    Shards another live process held are tried once more at the end: it may have died meanwhile.
+    """
+    held_elsewhere = []
+    for plan in todo:
+        if not (yield from _units_if_claimed(plan, owner, state)):
+            held_elsewhere.append(plan)
+    for plan in held_elsewhere:
+        yield from _units_if_claimed(plan, owner, state)
+
+
+def _units_if_claimed(plan: ShardPlan, owner: Owner,
+                      state: BuildState) -> Generator[tuple[tuple[ShardPlan, int], Any], None, bool]:
+    """The plan's units if this run claims it (returns False if a live process holds the claim)."""
+    name = shard_name(plan.split, plan.index)
+    if not owner.claim(name, on_takeover=partial(state.remove_temp_files, plan.split, plan.index)):
+        return False
+    if state.marker(plan.split, plan.index) is not None:
+        owner.release(name)  # another process finished it since this run started
+        return True
+    for position, unit in enumerate(plan.units):
+        yield (plan, position), unit
+    return True
 
 
 def run_build(
@@ -135,51 +215,88 @@ def run_build(
     build_scene: Callable[[Any], SceneRecord],
     creator: dict[str, Any],
     worker_initializer: Callable[[], None] | None = None,
+    prepare: Callable[[], None] | None = None,
 ) -> BuildSummary:
-    """Build every shard of ``plans`` this run is responsible for, then the manifest if all exist."""
+    """Build every shard of ``plans`` this run is responsible for and can claim, then the manifest
+    if all exist. ``prepare`` runs once the folder is known to hold this build (e.g. to fill
+    ``scratch_dir``): a run refused for other arguments writes nothing."""
     start = time.perf_counter()
-    state = BuildState(options.out, spec["name"], fingerprint)
-    state.claim()
-    remove_stale_temp_files(options.out)
-    state.clear_spills()
-    state.spill_dir.mkdir()
+    if any(not plan.units for plan in plans):
+        raise ValueError("every ShardPlan needs at least one unit")
+    keys = [(plan.split, plan.index) for plan in plans]
+    state = BuildState(options.out, spec["name"], fingerprint, keys, about={"spec": spec, "creator": creator})
+    created = state.open()
     summary = BuildSummary()
-    results: dict[tuple[str, int], dict[str, Any]] = {}
-    todo: list[ShardPlan] = []
-    for position, plan in enumerate(plans):
-        done = state.finished(plan.split, plan.index)
-        if done is not None:
-            results[(plan.split, plan.index)] = done
-            summary.kept_shards += 1
-        elif position % options.num_shards == options.shard_index:
-            todo.append(plan)
-
-    units = [unit for plan in todo for unit in plan.units]
-    metadata = dataset_metadata(spec)
-    bar = tqdm(total=len(units), desc=f"{spec['name']}: scenes", unit="scene", disable=not options.progress)
-    initializer = partial(init_build_process, state.spill_dir, worker_initializer)
-    stream = _scene_stream(build_scene, units, options.workers, initializer)
-    try:
-        for plan in todo:
-            with ShardWriter(options.out, plan.split, plan.index, metadata) as writer:
-                for _ in plan.units:
-                    summary.frames += writer.add_scene(next(stream))
-                    summary.scenes += 1
-                    bar.update(1)
-                result = writer.close()
-            results[(plan.split, plan.index)] = state.record(result)
-            summary.built_shards += 1
-    finally:
-        stream.close()  # stops the pool first: no worker writes spills any more
-        bar.close()
-        set_spill_dir(None)  # the inline path set it in this process
-        state.clear_spills()
-
-    summary.pending_shards = [f"{p.split}/{p.index}" for p in plans if (p.split, p.index) not in results]
-    finished = list(results.values())
-    summary.skipped = sum(s["count"] for r in finished for s in r["skips"])
-    if not summary.pending_shards:
-        publish_dataset(options.out, build_manifest(spec, finished, creator, state.fingerprint))
-        summary.manifest_written = True
+    with Owner(state.dir, options.claim_timeout, token_dirs=(state.spill_dir,)) as owner:
+        try:
+            if prepare is not None:
+                prepare()
+        except BaseException:
+            if created and not owner.others_alive():
+                state.forget()
+            raise
+        todo = []
+        for position, plan in enumerate(plans):
+            if state.finished(plan.split, plan.index) is not None:
+                summary.kept_shards += 1
+            elif position % options.num_shards == options.shard_index:
+                todo.append(plan)
+        _build_shards(options, spec, state, owner, todo, build_scene, worker_initializer, summary)
+        finished = {key: state.marker(*key) for key in keys}
+        summary.pending_shards = [f"{split}/{index}" for (split, index), r in finished.items() if r is None]
+        results = [r for r in finished.values() if r is not None]
+        summary.skipped = sum(s["count"] for r in results for s in r["skips"])
+        failed = [s for r in results for s in r["skips"] if s["reason"].startswith(FAILED_SCENE)]
+        if failed and not any(r["frames"]["rows"] for r in results):
+            raise UslError(f"every scene built so far failed to convert or was empty, e.g. {failed[0]['path']}: "
+                           f"{failed[0]['reason']}; fix the input (the failed scenes are recorded as skips in "
+                           f"{options.out}: delete it before re-running)")
+        if not summary.pending_shards:
+            publish_dataset(options.out, build_manifest(spec, results, creator, state.fingerprint))
+            summary.manifest_written = True
+            if not owner.others_alive():
+                _remove_empty(state.spill_dir)
     summary.seconds = time.perf_counter() - start
     return summary
+
+
+def _build_shards(options: BuildOptions, spec: dict[str, Any], state: BuildState, owner: Owner,
+                  todo: list[ShardPlan], build_scene: Callable[[Any], SceneRecord],
+                  worker_initializer: Callable[[], None] | None, summary: BuildSummary) -> None:
+    """Claim, build and commit shards of ``todo`` one after the other, scenes in parallel."""
+    metadata = dataset_metadata(spec)
+    spill = state.spill_dir if options.executor == "local" else None  # Ray results travel in memory
+    initializer = partial(init_build_process, spill, owner.token, worker_initializer)
+    builder = SceneBuilder(build_scene, options.skip_bad_scenes)
+    bar = tqdm(total=sum(len(p.units) for p in todo), desc=f"{spec['name']}: scenes", unit="scene",
+               disable=not options.progress)
+    writer: ShardWriter | None = None
+    try:
+        with make_executor(options.executor, options.workers, options.ray_address, initializer) as executor:
+            for (plan, position), built in ordered_results(executor, builder, _claimed_units(todo, owner, state)):
+                if position == 0:
+                    writer = ShardWriter(options.out, plan.split, plan.index, metadata)
+                assert writer is not None
+                summary.frames += writer.add_scene(built.record)
+                summary.scenes += 1
+                if built.error is not None:
+                    summary.failed_scenes += 1
+                    tqdm.write(f"{spec['name']}: scene {built.record.scene_id} not converted: {built.error}")
+                bar.update(1)
+                if position == len(plan.units) - 1:
+                    state.record(writer.close())
+                    writer = None
+                    owner.release(shard_name(plan.split, plan.index))
+                    summary.built_shards += 1
+    finally:
+        if writer is not None:
+            writer.abort()
+        bar.close()
+        set_spill_dir(None)  # the inline path set it in this process
+
+
+def _remove_empty(directory: Path) -> None:
+    try:
+        directory.rmdir()
+    except OSError:  # absent, or another run's spills arrived meanwhile
+        pass

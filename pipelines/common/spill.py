@@ -1,8 +1,9 @@
 """Where build workers spill the frame rows of long scenes, and the sink pipelines write them to.
 
 ``run_build`` tells every worker process (and, with one worker, its own process) the spill folder
-through the pool initializer; ``build_scene`` functions then only call ``frame_sink(scene_id)`` and
-need not know whether they run inside a build, in which process, or how long the scene will be.
+and its own temp-file token through the executor's initializer; ``build_scene`` functions then only
+call ``frame_sink(scene_id)`` and need not know whether they run inside a build, in which process,
+or how long the scene will be.
 """
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ from pathlib import Path
 from typing import Callable
 
 from usl.records.shards import FrameSink
+from usl.records.tempfiles import set_process_token
 
 _spill_dir: Path | None = None  # set per process by run_build; None outside a build
 
@@ -23,7 +25,7 @@ def frame_sink(scene_id: str) -> FrameSink:
             return sink.finish(objects, skips)
 
     Inside a build a long scene is spilled to disk (the record names the file); outside one
-    (tests, benchmarks calling ``build_scene`` directly) the record holds its rows.
+    (tests, benchmarks calling ``build_scene`` directly, Ray tasks) the record holds its rows.
     """
     return FrameSink(scene_id, _spill_dir)
 
@@ -33,8 +35,9 @@ def set_spill_dir(path: Path | None) -> None:
     _spill_dir = path
 
 
-def init_build_process(spill_dir: Path | None, initializer: Callable[[], None] | None) -> None:
-    """Pool initializer: the spill folder first, then the pipeline's own initializer."""
+def init_build_process(spill_dir: Path | None, token: str, initializer: Callable[[], None] | None) -> None:
+    """Executor initializer: spill folder and the driver's temp-file token, then the pipeline's own."""
     set_spill_dir(spill_dir)
+    set_process_token(token)
     if initializer is not None:
         initializer()

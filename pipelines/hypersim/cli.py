@@ -40,7 +40,7 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("scenes", nargs="+", help="scene folders (ai_VVV_NNN) or folders holding them")
     p.add_argument("--split-csv", type=Path, required=True, help="metadata_images_split_scene_v1.csv")
     p.add_argument("--camera-csv", type=Path, required=True, help="metadata_camera_parameters.csv")
-    add_build_arguments(p)
+    add_build_arguments(p, skip_bad_scenes=True)
     p.add_argument("--splits", nargs="+", default=[], help="splits to convert, e.g. train val; empty: all")
     p.add_argument("--cameras", nargs="+", default=[], help="camera trajectories to convert, e.g. cam_00; empty: all")
     # dest names stay as before the rename, so build fingerprints (and resuming) are unchanged

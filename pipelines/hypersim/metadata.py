@@ -21,15 +21,25 @@ CAMERA_COLUMNS = ("scene_name", "settings_output_img_width", "settings_output_im
 
 
 def _rows(path: Path, required: tuple[str, ...]) -> list[dict[str, str]]:
+    """The rows of a CSV with the ``required`` columns, each as complete as its header."""
     path = Path(path)
     if not path.is_file():
         raise UslError(f"{path}: file not found")
-    with open(path, newline="") as f:
-        reader = csv.DictReader(f)
-        missing = [c for c in required if c not in (reader.fieldnames or [])]
-        if missing:
-            raise UslError(f"{path}: missing column(s) {', '.join(missing)}")
-        return list(reader)
+    try:
+        with open(path, newline="", encoding="utf-8-sig") as f:
+            reader = csv.DictReader(f)
+            missing = [c for c in required if c not in (reader.fieldnames or [])]
+            if missing:
+                raise UslError(f"{path}: missing column(s) {', '.join(missing)}")
+            rows = list(reader)
+    except UnicodeDecodeError as exc:
+        raise UslError(f"{path}: not UTF-8 text (byte {exc.start}: {exc.reason})") from None
+    except csv.Error as exc:
+        raise UslError(f"{path}: not a readable CSV ({exc})") from None
+    for line, row in enumerate(rows, start=2):
+        if None in row or None in row.values():  # DictReader's marks for extra or missing fields
+            raise UslError(f"{path}:{line}: the row has {'more' if None in row else 'fewer'} fields than the header")
+    return rows
 
 
 @dataclass

@@ -13,11 +13,10 @@ instance-filt/label-filt images. See pipelines/scannet/README.md for the file fo
 from __future__ import annotations
 
 import argparse
-import shutil
 import sys
-import tempfile
+from functools import partial
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Callable
 
 from data_specs import load_dataset_spec
 from pipelines.common import (
@@ -28,6 +27,7 @@ from pipelines.common import (
     creator_from_args,
     fingerprint_from_args,
     run_build,
+    scratch_dir,
 )
 from usl.cli_common import deprecated_alias, make_parser, resolution
 from usl.records import UslError
@@ -47,7 +47,7 @@ def parse_size(text: str) -> tuple[int, int] | None:
 
 def parser(spec: dict) -> argparse.ArgumentParser:
     p = make_parser(COMMAND, __doc__, parents=[build_common_options()])
-    add_build_arguments(p)
+    add_build_arguments(p, skip_bad_scenes=True)
     p.add_argument("--scans-root", type=Path, required=True, help="folder with one <scan id>/ folder per scan")
     p.add_argument("--splits-dir", type=Path, required=True, help="folder with scannetv2_{train,val,test}.txt")
     p.add_argument("--splits", nargs="+", choices=SPLITS, default=["train", "val"], help="official splits to convert")
@@ -129,8 +129,10 @@ def convert_options(args: argparse.Namespace) -> ConvertOptions:
         raise UslError(f"bad option: {exc}") from None
 
 
-def mask_source(args: argparse.Namespace, spec: dict, scenes: set[str], cache: Path) -> tuple[MaskSource, dict]:
-    """The mask source, and what of its inputs belongs in the build fingerprint."""
+def mask_source(args: argparse.Namespace, spec: dict, scenes: set[str],
+                cache: Path) -> tuple[MaskSource, dict, Callable[[], None] | None]:
+    """The mask source, what of its inputs belongs in the build fingerprint, and what must run once
+    the output folder is known to hold this build (splitting the detections into ``cache``)."""
     from .detections_file import DetectionsFileSource, split_detections
     from .scannet_labels import ScanNetLabelsSource
 
@@ -138,7 +140,7 @@ def mask_source(args: argparse.Namespace, spec: dict, scenes: set[str], cache: P
     if args.masks == "scannet-labels":
         if args.label_map is None:
             raise UslError("--masks scannet-labels needs --label-map scannetv2-labels.combined.tsv")
-        return ScanNetLabelsSource(str(args.label_map), tuple((int(c["id"]), c["name"]) for c in categories)), {}
+        return ScanNetLabelsSource(str(args.label_map), tuple((int(c["id"]), c["name"]) for c in categories)), {}, None
     if args.tracker == "source-ids":
         raise UslError("--tracker source-ids needs --masks scannet-labels (detectors give no identities)")
     if not args.detections or args.detection_images is None:
@@ -148,11 +150,10 @@ def mask_source(args: argparse.Namespace, spec: dict, scenes: set[str], cache: P
     for path in files:
         if not path.is_file():
             raise UslError(f"{path}: no such file")
-    split_detections(results, args.detection_images, scenes, cache)
     source = DetectionsFileSource(str(cache), tuple((int(c["coco_id"]), int(c["id"])) for c in categories),
                                   args.category_ids == "contiguous")
     stamps = [[str(p), p.stat().st_size, p.stat().st_mtime_ns] for p in files]
-    return source, {"detection_files": stamps}
+    return source, {"detection_files": stamps}, partial(split_detections, results, args.detection_images, scenes, cache)
 
 
 def plan_shards(chosen: dict[str, list[str]], scans_root: Path, per_shard: int, masks: MaskSource,
@@ -179,25 +180,25 @@ def single_threaded_worker() -> None:
 def main(argv: list[str] | None = None) -> int:
     spec = load_dataset_spec("scannet")
     args = parser(spec).parse_args(argv)
-    cache = Path(tempfile.mkdtemp(prefix="usl-scannet-detections-"))
     try:
         build = build_options_from_args(args)
         if args.scenes_per_shard < 1:
             raise UslError("--scenes-per-shard must be >= 1")
         options = convert_options(args)
         chosen = scenes_by_split(args)
-        masks, inputs = mask_source(args, spec, {s for scenes in chosen.values() for s in scenes}, cache)
+        # The per-scan detections live in this run's scratch folder inside --out: removed when the run
+        # ends, and reaped by the next run on this --out if this one is killed.
+        cache = scratch_dir(args.out) / "detections"
+        masks, inputs, prepare = mask_source(args, spec, {s for scenes in chosen.values() for s in scenes}, cache)
         plans = plan_shards(chosen, args.scans_root, args.scenes_per_shard, masks, options)
         fingerprint = {**fingerprint_from_args(args), **inputs}
         from .convert import build_scene
 
         summary = run_build(build, spec, fingerprint, plans, build_scene, creator_from_args(COMMAND, args),
-                            worker_initializer=single_threaded_worker)
+                            worker_initializer=single_threaded_worker, prepare=prepare)
     except UslError as exc:
         print(f"{COMMAND}: error: {exc}", file=sys.stderr)
         return 2
-    finally:
-        shutil.rmtree(cache, ignore_errors=True)
     print(f"{COMMAND}: {summary.describe()}")
     return 0
 

@@ -16,6 +16,7 @@ from synthetic_records import build_synthetic_records  # noqa: E402
 from usl.engine.checkpoint import CheckpointError, load_model, read_checkpoint  # noqa: E402
 from usl.engine.distributed import DistInfo  # noqa: E402
 from usl.engine.run_log import read_metrics  # noqa: E402
+from usl.engine.skip_guard import TooManySkippedSteps  # noqa: E402
 from usl.engine.train import Trainer, main, seed_everything  # noqa: E402
 from usl.config import load_config  # noqa: E402
 from usl.model.outputs import ObjectPredictions  # noqa: E402
@@ -129,6 +130,10 @@ def test_non_finite_loss_skips_the_step(records, tmp_path):
     assert values["skipped"] == 0.0
     assert any(not torch.equal(before[k], v) for k, v in trainer.model.named_parameters())
     assert all(p.grad is None for p in trainer.step.params)  # nothing left over for the next step
+    trainer.step = lambda batch: {"loss": float("nan"), "skipped": 1.0}  # from now on every step is non-finite
+    with pytest.raises(TooManySkippedSteps, match="6 of the last 6 steps"):  # defaults: > 0.25 of 20
+        trainer.train()
+    assert trainer.iteration == 5
 
 
 def test_model_api_for_the_evaluator(records, tmp_path):

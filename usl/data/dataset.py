@@ -15,7 +15,7 @@ import torch
 from torch.utils.data import Dataset
 
 from usl.config import DataConfig
-from usl.records import RecordsDataset, decode_mask, frame_K, frame_pose
+from usl.records import RecordsDataset, decode_mask, decoding, frame_K, frame_pose
 
 from .frames import CategoryIndex, FrameData, decode_frame
 from .samples import MultiViewSample, TargetView
@@ -59,7 +59,8 @@ class MultiViewDataset(Dataset):
         index, epoch = (key, 0) if isinstance(key, int) else key
         rng = np.random.default_rng([self.seed, epoch, index])
         scene_id, position = self.items[index]
-        frame = decode_frame(self.records.read_scene(scene_id, views=[position])[0], self.categories)
+        source = self.records.source(scene_id)
+        frame = decode_frame(self.records.read_scene(scene_id, views=[position])[0], self.categories, source=source)
         rows = np.arange(len(frame.instance_ids))
         if 0 < self.cfg.max_objects < len(rows):
             rows = np.sort(rng.choice(len(rows), self.cfg.max_objects, replace=False))
@@ -70,7 +71,7 @@ class MultiViewDataset(Dataset):
         )
         other_rows = self.records.read_scene(scene_id, views=others, columns=TARGET_COLUMNS) if others else []
         object_rows = torch.from_numpy(rows).long()
-        views = [input_target_view(frame, object_rows)] + [decode_target_view(r, object_ids) for r in other_rows]
+        views = [input_target_view(frame, object_rows)] + [decode_target_view(r, object_ids, source) for r in other_rows]
         return MultiViewSample(
             frame=resize_frame(frame, self.cfg.max_size),
             object_rows=object_rows,
@@ -105,8 +106,13 @@ def input_target_view(frame: FrameData, object_rows: torch.Tensor) -> TargetView
     )
 
 
-def decode_target_view(row: dict[str, Any], object_ids: torch.Tensor) -> TargetView:
+def decode_target_view(row: dict[str, Any], object_ids: torch.Tensor, source: str = "") -> TargetView:
     """Masks of the given instance ids in another view (all-False where an id is absent)."""
+    with decoding(row, source):
+        return _decode_target_view(row, object_ids)
+
+
+def _decode_target_view(row: dict[str, Any], object_ids: torch.Tensor) -> TargetView:
     height, width = int(row["height"]), int(row["width"])
     masks = torch.zeros(len(object_ids), height, width, dtype=torch.bool)
     present = torch.zeros(len(object_ids), dtype=torch.bool)

@@ -11,7 +11,7 @@ from typing import Any, Sequence
 import numpy as np
 import torch
 
-from usl.records import decode_depth, decode_image, decode_mask, frame_K, frame_pose
+from usl.records import decode_depth, decode_image, decode_mask, decoding, frame_K, frame_pose
 
 
 class CategoryIndex:
@@ -53,9 +53,16 @@ class FrameData:
 
 
 def decode_frame(
-    row: dict[str, Any], categories: CategoryIndex, with_image: bool = True, with_depth: bool = False
+    row: dict[str, Any], categories: CategoryIndex, with_image: bool = True, with_depth: bool = False,
+    source: str = "",
 ) -> FrameData:
-    """Decode a frames-table row (as returned by ``RecordsDataset.read_scene``)."""
+    """Decode a frames-table row (as returned by ``RecordsDataset.read_scene``); errors name ``source``
+    (the shard, ``RecordsDataset.source``), the scene and the view."""
+    with decoding(row, source):
+        return _decode_frame(row, categories, with_image, with_depth)
+
+
+def _decode_frame(row: dict[str, Any], categories: CategoryIndex, with_image: bool, with_depth: bool) -> FrameData:
     height, width = int(row["height"]), int(row["width"])
     if with_image:
         image = torch.from_numpy(decode_image(row["image"])).permute(2, 0, 1).float().div_(255.0)

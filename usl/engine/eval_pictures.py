@@ -49,7 +49,9 @@ def evaluation_picture(
     """The picture of one prediction; ``rows``: instance id -> its ``objects.jsonl`` row.
 
     Images are read again (the evaluator keeps no pixels)."""
-    frame = decode_frame(dataset.read_scene(inp.frame.scene_id, views=[position])[0], categories, with_image=True)
+    source = dataset.source(inp.frame.scene_id)
+    frame = decode_frame(dataset.read_scene(inp.frame.scene_id, views=[position])[0], categories, with_image=True,
+                         source=source)
     pred = pred.to("cpu")
     best = float(pred.scores.max()) if len(pred) else None
     if uses_detections:
@@ -80,7 +82,7 @@ def evaluation_picture(
     positions = spread_positions(dataset.num_views(frame.scene_id), position, num_views) if len(pred) else []
     color_of = {int(i): colors[n] for n, i in enumerate(ids) if i >= 0}
     for row in dataset.read_scene(frame.scene_id, views=positions) if positions else []:
-        view = decode_frame(row, categories, with_image=True)
+        view = decode_frame(row, categories, with_image=True, source=source)
         keep = [n for n, i in enumerate(view.instance_ids.tolist()) if i in color_of]
         verts = transform_points(pred.verts.double(), relative_transform(frame.cam_to_world, view.cam_to_world)).float()
         height, width = view.size

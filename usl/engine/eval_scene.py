@@ -92,7 +92,7 @@ def evaluate_scene(
     for start in range(0, len(positions), config.batch_size):
         batch = []
         for row in encoded[start : start + config.batch_size]:
-            frame = decode_frame(row, categories, with_image=True)
+            frame = decode_frame(row, categories, with_image=True, source=dataset.source(scene_id))
             batch.append(EvalInput(frame, true_meshes_in_camera(objects, frame.cam_to_world) if objects else {}))
         for p, predictor in enumerate(predictors):
             with torch.no_grad():

@@ -14,7 +14,7 @@ import torch
 
 from usl.engine.eval_types import TrueMesh
 from usl.geometry.cameras import rigid_inverse, transform_points
-from usl.records import decode_mask, frame_K, frame_pose, object_mesh
+from usl.records import decode_mask, decoding, frame_K, frame_pose, object_mesh
 
 Tensor = torch.Tensor
 
@@ -47,11 +47,12 @@ def decode_view_targets(
     """Decode a frames row's camera and the instances in ``wanted`` (all when None)."""
     height, width = int(row["height"]), int(row["width"])
     instances = [i for i in (row["instances"] or []) if wanted is None or int(i["instance_id"]) in wanted]
-    masks = (
-        torch.from_numpy(np.stack([decode_mask(i["mask"]) for i in instances]))
-        if instances
-        else torch.zeros(0, height, width, dtype=torch.bool)
-    )
+    with decoding(row):
+        masks = (
+            torch.from_numpy(np.stack([decode_mask(i["mask"]) for i in instances]))
+            if instances
+            else torch.zeros(0, height, width, dtype=torch.bool)
+        )
     return ViewTargets(
         position=position,
         view_id=int(row["view_id"]),

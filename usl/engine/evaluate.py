@@ -72,6 +72,8 @@ def run_evaluation(
     if missing:
         raise UslError(f"{root}: split {split!r} has no scene(s) {missing[:5]}")
     scenes = scenes[:max_scenes] if max_scenes else scenes
+    if not scenes:
+        raise UslError(f"{root}: split {split!r} has no scenes to evaluate")
     coco = {p: CocoDetections(categories.ids, categories.names) for p, pr in enumerate(predictors) if pr.uses_detections}
     counts = {pr.name: DetectionCounts() for pr in predictors if pr.uses_detections}
     rows: list[dict[str, Any]] = []
@@ -90,6 +92,8 @@ def run_evaluation(
                 matched = int((pr.pred.instance_ids >= 0).sum())
                 counts[predictors[pr.predictor].name].add(len(frame.instance_ids), len(pr.pred), matched)
         gallery.scene_done(dataset, scene_index, outcome)
+    if not rows:
+        raise UslError(f"{root}: split {split!r}: none of its {num_inputs} input view(s) has an object to evaluate")
     gallery.finish(dataset, rows, selection, config)
     average_precision = {predictors[p].name: c.evaluate() for p, c in coco.items()}
     summaries = summarize(predictors, rows, counts, average_precision)

@@ -20,6 +20,7 @@ from .checkpoint import CheckpointError, rng_state, set_rng_state, write_run_che
 from .distributed import DistInfo, all_gather_objects, barrier
 from .feedback import TrainingFeedback
 from .run_log import RunLog
+from .skip_guard import SkipGuard
 from .train_cli import main  # noqa: F401  (usl-train's entry point: parses before torch loads)
 from .train_step import TrainStep
 
@@ -72,7 +73,7 @@ class Trainer:
         self.cfg, self.run_dir, self.info = cfg, run_dir, info
         if cfg.train.cpu_threads > 0:
             torch.set_num_threads(cfg.train.cpu_threads)
-        records = RecordsDataset(cfg.data.root, cfg.data.train_split)
+        records = RecordsDataset(cfg.data.root, cfg.data.train_split, verify=cfg.data.verify)
         fill_dataset_fields(cfg, records)
         seed_everything(cfg.train.seed, info.rank)
         self.step = TrainStep(cfg, info)
@@ -85,6 +86,7 @@ class Trainer:
         self.sampler = ShardedBatchSampler(len(dataset), cfg.train.batch_size, info.rank, info.world_size, cfg.train.seed)
         self.loader = build_train_loader(dataset, self.sampler, cfg.data.num_workers)
         self.iteration, self.epoch, self.batch_in_epoch = 0, 0, 0
+        self.skip_guard = SkipGuard(cfg.train.max_skipped_fraction, cfg.train.skip_window)
         if resume is not None:
             self.load_state(resume)
         self.log: RunLog | None = None
@@ -140,6 +142,7 @@ class Trainer:
                     values = self.step(batch, diagnostics=(self.iteration + 1) % cfg.train.log_every == 0)
                     if values["skipped"]:
                         tqdm.write(f"{COMMAND}: non-finite loss or gradient at iteration {self.iteration + 1}; step skipped")
+                    self.skip_guard.update(values["skipped"], self.iteration + 1)
                     self.iteration += 1
                     self.batch_in_epoch += 1
                     now = time.perf_counter()

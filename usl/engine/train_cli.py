@@ -107,6 +107,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     from usl.config import Config, ConfigError, dump_config  # torch loads from here on
     from usl.config_docs import format_keys
     from usl.records import UslError
+    from usl.records.errors import error_line
 
     from .checkpoint import CheckpointError
 
@@ -127,6 +128,6 @@ def main(argv: Sequence[str] | None = None) -> int:
         finally:
             shutdown_distributed()
     except (ConfigError, CheckpointError, UslError) as exc:
-        print(f"{COMMAND}: error: {exc}", file=sys.stderr)
+        print(f"{COMMAND}: error: {error_line(exc)}", file=sys.stderr)
         return 2
     return 0

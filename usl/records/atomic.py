@@ -6,11 +6,13 @@ import os
 from pathlib import Path
 from typing import Any
 
+from .tempfiles import temp_path
+
 
 def write_text_atomic(path: Path, text: str) -> None:
     """Write to a hidden temp file, fsync, rename: readers never see a half-written file."""
     path = Path(path)
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    tmp = temp_path(path, hidden=True)  # named after this process: only a gone writer's temps are reaped
     with open(tmp, "w") as f:
         f.write(text)
         f.flush()

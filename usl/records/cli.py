@@ -1,11 +1,13 @@
 """``usl-records``: validate a dataset folder, summarise it (counts and a contact sheet), migrate a
-schema v1 folder to v2 in place, or export a split as COCO instances JSON.
+schema v1 folder to v2 in place, export a split as COCO instances JSON, or gather build folders
+made on separate machines into one.
 
     usl-records validate data/scene_shapes               # schema, checksums, masks, boxes, ids, cameras
     usl-records validate data/hypersim --split val --no-images
     usl-records info data/scene_shapes --sheet sheet.png # counts per split/category + a contact sheet
     usl-records migrate data/old_v1_dataset              # v1 -> v2 in place (atomic, resumable)
     usl-records export-coco data/scene_shapes --split val --out val_coco.json --images-dir val_images
+    usl-records gather part0 part1 part2 --out data/hypersim  # --num-shards/--shard-index builds
 """
 from __future__ import annotations
 
@@ -45,6 +47,9 @@ def parser():
     coco.add_argument("--out", type=Path, required=True, help="JSON file to write")
     coco.add_argument("--images-dir", type=Path,
                       help="also write the images here, as the JSON's file_name values name them (default: JSON only)")
+    merge = command("gather", "merge folders built apart (--num-shards/--shard-index) into one dataset")
+    merge.add_argument("parts", nargs="+", type=Path, metavar="PART", help="build folders of one build")
+    merge.add_argument("--out", type=Path, required=True, help="dataset folder to create (or complete)")
     return p
 
 
@@ -53,6 +58,15 @@ def main(argv: list[str] | None = None) -> int:
     from .errors import UslError  # the tools below load pyarrow, OpenCV and (info) torch: after parsing
 
     try:
+        if args.command == "gather":
+            summary = gather(args.parts, args.out, progress=True)
+            print(f"{args.out}: copied {summary.copied} shard(s), kept {summary.kept}")
+            if summary.missing:
+                print(f"usl-records: error: no part holds shard(s) {', '.join(summary.missing)}; build them "
+                      "(same command, their --shard-index) and gather again", file=sys.stderr)
+                return 1
+            print(f"{args.out / 'manifest.json'} written")
+            return 0
         if args.command == "validate":
             from .validate import validate_dataset
 

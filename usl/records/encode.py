@@ -5,15 +5,16 @@ masks the same way everywhere (DESIGN.md §2-3).
 """
 from __future__ import annotations
 
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterator
 
 import cv2
 import numpy as np
 from pycocotools import mask as mask_utils
 
-from .errors import UslError
+from .errors import UslError, one_line
 
 DEPTH_SCALE = 1000.0  # depth PNG stores millimetres
 MAX_DEPTH_MM = np.iinfo(np.uint16).max
@@ -47,7 +48,10 @@ def image_bytes(image: bytes | dict[str, Any]) -> bytes:
 
 def decode_image(data: bytes | dict[str, Any]) -> np.ndarray:
     """Decode a frame's ``image`` (Image struct or PNG/JPEG bytes) to an (H, W, 3) RGB uint8 array."""
-    buffer = np.frombuffer(image_bytes(data), np.uint8)
+    data = image_bytes(data)
+    if not data:
+        raise UslError("image bytes are empty")
+    buffer = np.frombuffer(data, np.uint8)
     if _IMREAD_RGB is not None:  # OpenCV >= 4.10 decodes straight to RGB, saving a full-image pass
         rgb = cv2.imdecode(buffer, _IMREAD_RGB)
     else:
@@ -74,6 +78,8 @@ def encode_depth(depth_m: np.ndarray) -> bytes:
 
 def decode_depth(data: bytes) -> np.ndarray:
     """16-bit PNG of millimetres -> float32 metres with NaN where unknown."""
+    if not data:
+        raise UslError("depth bytes are empty")
     mm = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
     if mm is None or mm.dtype != np.uint16:
         raise UslError("depth bytes are not a 16-bit PNG")
@@ -91,9 +97,24 @@ def encode_mask(mask: np.ndarray) -> dict[str, Any]:
 
 def decode_mask(rle: dict[str, Any]) -> np.ndarray:
     """COCO RLE (as stored in records) -> boolean (H, W) mask."""
-    counts = rle["counts"]
-    coco = {"size": list(rle["size"]), "counts": counts.encode("ascii") if isinstance(counts, str) else counts}
-    return mask_utils.decode(coco).astype(bool)
+    try:
+        counts = rle["counts"]
+        height, width = (int(v) for v in rle["size"])
+        coco = {"size": [height, width], "counts": counts.encode("ascii") if isinstance(counts, str) else counts}
+        mask = mask_utils.decode(coco)
+    except Exception as exc:  # pycocotools raises plain Exceptions (and TypeErrors) for bad RLE
+        raise UslError(f"mask RLE does not decode ({one_line(exc)})") from exc
+    return mask.astype(bool)
+
+
+@contextmanager
+def decoding(row: dict[str, Any], source: str = "") -> Iterator[None]:
+    """Turn any failure to decode a row's fields into one line naming the shard, scene and view."""
+    try:
+        yield
+    except Exception as exc:
+        where = f"{source}: " if source else ""
+        raise UslError(f"{where}scene {row.get('scene_id')!r} view {row.get('view_id')}: {one_line(exc)}") from exc
 
 
 def mask_bbox(mask: np.ndarray) -> list[float]:

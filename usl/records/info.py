@@ -7,11 +7,12 @@ from typing import Any
 
 import cv2
 import numpy as np
-import pyarrow.parquet as pq
 
-from .encode import decode_image, decode_mask
+from .encode import decode_image, decode_mask, decoding
+from .errors import UslError, one_line
 from .manifest import load_manifest
 from .reader import RecordsDataset
+from .shards import read_shard_table
 
 
 def dataset_counts(root: str | Path) -> dict[str, Any]:
@@ -24,7 +25,7 @@ def dataset_counts(root: str | Path) -> dict[str, Any]:
         per_category: Counter[str] = Counter()
         objects: set[tuple[str, int]] = set()
         for shard in entry["shards"]:
-            table = pq.read_table(root / shard["frames"]["file"], columns=["scene_id", "instances"])
+            table = read_shard_table(root, shard["frames"], columns=["scene_id", "instances"])
             for row in table.to_pylist():
                 for inst in row["instances"]:
                     per_category[names.get(inst["category_id"], str(inst["category_id"]))] += 1
@@ -82,7 +83,8 @@ def contact_sheet(root: str | Path, out_png: str | Path, split: str | None = Non
         picks = sorted(set(np.linspace(0, n - 1, min(views_per_scene, n)).round().astype(int).tolist()))
         tiles = []
         for row in dataset.read_scene(scene_id, views=picks):
-            image = overlay_instances(decode_image(row["image"]), row["instances"], names)
+            with decoding(row, dataset.source(scene_id)):
+                image = overlay_instances(decode_image(row["image"]), row["instances"], names)
             scale = tile / max(image.shape[:2])
             image = cv2.resize(image, (round(image.shape[1] * scale), round(image.shape[0] * scale)), interpolation=cv2.INTER_AREA)
             canvas = np.zeros((tile, tile, 3), np.uint8)
@@ -93,6 +95,11 @@ def contact_sheet(root: str | Path, out_png: str | Path, split: str | None = Non
         rows.append(np.concatenate(tiles, axis=1))
     sheet = np.concatenate(rows, axis=0) if rows else np.zeros((tile, tile, 3), np.uint8)
     out_png = Path(out_png)
-    out_png.parent.mkdir(parents=True, exist_ok=True)
-    cv2.imwrite(str(out_png), cv2.cvtColor(sheet, cv2.COLOR_RGB2BGR))
+    try:
+        out_png.parent.mkdir(parents=True, exist_ok=True)
+        written = cv2.imwrite(str(out_png), cv2.cvtColor(sheet, cv2.COLOR_RGB2BGR))
+    except (OSError, cv2.error) as exc:
+        raise UslError(f"{out_png}: cannot write the contact sheet ({one_line(exc)})") from None
+    if not written:
+        raise UslError(f"{out_png}: cannot write the contact sheet (not writable, or not a .png/.jpg name)")
     return out_png

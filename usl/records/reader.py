@@ -16,9 +16,10 @@ import pyarrow.parquet as pq
 import torch
 from torch.utils.data import IterableDataset, get_worker_info
 
-from .errors import UslError
+from .errors import UslError, one_line
 from .manifest import load_manifest
 from .schema import read_metadata
+from .shards import VERIFY_MODES, open_shard, verify_file
 from .upgrade import upgrade_table
 
 
@@ -30,18 +31,16 @@ class SceneLocation:
 
 
 class _OpenShard:
-    """A Parquet file plus the first row of each row group, for reading a row range cheaply.
+    """A verified Parquet file plus the first row of each row group, for reading a row range cheaply.
 
     Rows come back in the current schema whatever version the file was written in.
     """
 
-    def __init__(self, path: Path, table: str):
-        try:
-            self.file = pq.ParquetFile(path)
-        except Exception as exc:
-            raise UslError(f"{path}: cannot open Parquet shard ({exc})") from exc
+    def __init__(self, root: Path, info: dict[str, Any], table: str):
+        self.path = root / info["file"]
+        self.file: pq.ParquetFile = open_shard(root, info)
         self.table = table
-        self.version = read_metadata(self.file.schema_arrow, str(path))["schema_version"]
+        self.version = read_metadata(self.file.schema_arrow, str(self.path))["schema_version"]
         meta = self.file.metadata
         self.group_starts = np.cumsum([0] + [meta.row_group(i).num_rows for i in range(meta.num_row_groups)])
 
@@ -56,7 +55,10 @@ class _OpenShard:
         return upgrade_table(table.take([r - base for r in rows]), self.table, self.version).to_pylist()
 
     def read_all(self) -> list[dict[str, Any]]:
-        return upgrade_table(self.file.read(), self.table, self.version).to_pylist()
+        try:
+            return upgrade_table(self.file.read(), self.table, self.version).to_pylist()
+        except Exception as exc:  # corrupt pages: checksum, decompression or decoding errors
+            raise UslError(f"{self.path}: cannot read ({one_line(exc)})") from exc
 
 
 class RecordsDataset:
@@ -64,11 +66,15 @@ class RecordsDataset:
 
     ``read_scene(scene_id)`` returns that scene's frame rows (dicts in the current schema, v2,
     also for a v1 dataset; sorted by view_id); ``views`` picks rows by position within the scene.
-    Decode fields with
-    ``usl.records.decode_image`` / ``decode_depth`` / ``decode_mask``.
+    Decode fields with ``usl.records.decode_image`` / ``decode_depth`` / ``decode_mask``, naming
+    ``source(scene_id)`` in errors. Every shard is checked against the manifest when first opened
+    (its size); with ``verify="sha256"`` every shard's checksum is checked once, here, before any
+    worker reads it.
     """
 
-    def __init__(self, root: str | Path, split: str):
+    def __init__(self, root: str | Path, split: str, verify: str = "size"):
+        if verify not in VERIFY_MODES:
+            raise UslError(f"unknown shard verification {verify!r}; choose from {VERIFY_MODES}")
         self.root = Path(root)
         self.split = split
         self.manifest = load_manifest(self.root)
@@ -80,6 +86,11 @@ class RecordsDataset:
             for scene_id, first, count in shard["scenes"]:
                 self.locations[scene_id] = SceneLocation(shard_pos, first, count)
         self.scene_ids: list[str] = list(self.locations)
+        if verify == "sha256":
+            for info in (s[t] for s in self.shards for t in ("frames", "objects") if s.get(t)):
+                problem = verify_file(self.root, info)
+                if problem:
+                    raise UslError(problem)
         self._open: dict[tuple[int, str, int], _OpenShard] = {}
         self._objects_cache: dict[int, dict[str, list[dict[str, Any]]]] = {}
 
@@ -101,8 +112,12 @@ class RecordsDataset:
             info = self.shards[shard_pos][table]
             if info is None:
                 raise UslError(f"{self.root}: split {self.split!r} has no {table} table")
-            self._open[key] = _OpenShard(self.root / info["file"], table)
+            self._open[key] = _OpenShard(self.root, info, table)
         return self._open[key]
+
+    def source(self, scene_id: str) -> str:
+        """The frames shard holding a scene, for error messages."""
+        return str(self.root / self.shards[self._location(scene_id).shard]["frames"]["file"])
 
     def num_views(self, scene_id: str) -> int:
         return self._location(scene_id).num_rows
@@ -121,7 +136,12 @@ class RecordsDataset:
         views = list(range(loc.num_rows)) if views is None else list(views)
         if any(not 0 <= v < loc.num_rows for v in views):
             raise IndexError(f"scene {scene_id!r} has {loc.num_rows} views; asked for {views}")
-        return shard.read_rows(loc.first_row, views, columns) if views else []
+        if not views:
+            return []
+        try:
+            return shard.read_rows(loc.first_row, views, columns)
+        except Exception as exc:  # corrupt pages: checksum, decompression or decoding errors
+            raise UslError(f"{shard.path}: scene {scene_id!r} views at positions {views}: cannot read ({one_line(exc)})") from exc
 
     def read_objects(self, scene_id: str) -> list[dict[str, Any]]:
         """3D ground-truth objects of a scene (empty if the dataset has none)."""

@@ -1,10 +1,13 @@
 """Writing one shard atomically: streamed row groups into a temp file, checksum, then rename.
 
 A shard is a ``frames/<split>/frames-NNNNN.parquet`` file and, when the dataset has 3D ground
-truth, a matching ``objects/<split>/objects-NNNNN.parquet`` (``schema.shard_file``). Nothing
-appears under its final name until it is complete, so a killed build leaves only temp files, which
-the next run removes and redoes. Temp files are hidden (leading dot), so pandas, pyarrow.dataset
-and Hugging Face never read a half-written shard beside finished ones.
+truth, a matching ``objects/<split>/objects-NNNNN.parquet`` (``schema.shard_file``, via
+``shard_paths``). Nothing appears under its final name until it is complete, so a killed build
+leaves only temp files named after their writer (``usl.records.tempfiles``), which a later run
+removes once it knows the writer is gone, and redoes. Temp files are hidden (leading dot), so
+pandas, pyarrow.dataset and Hugging Face never read a half-written shard beside finished ones.
+Pages carry CRC checksums that every reader verifies, so flipped bytes fail loudly even where no
+sha256 is computed.
 
 A long scene (a whole video) need not be in memory at once: a ``FrameSink`` in the worker spills
 its rows to a Parquet file group by group, and ``ShardWriter`` copies that file group by group.
@@ -25,8 +28,9 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from .encode import SceneRecord, Skip
-from .errors import UslError
+from .errors import UslError, one_line
 from .schema import dataset_schema, required_fields, shard_file, table_schema
+from .tempfiles import process_token, temp_path
 
 # Small row groups keep "read one scene" cheap; a long video scene spans several groups.
 MAX_ROWS_PER_GROUP = 64
@@ -35,7 +39,16 @@ PAYLOAD_COLUMNS = ("image.bytes", "depth")  # encoded images: already compressed
 # Instances (RLE strings, ids, boxes) are left uncompressed: ZSTD shrinks a frames shard by only
 # ~3% but costs ~20% more CPU per random read (measured on Scene-Shapes, 256 px).
 UNCOMPRESSED_FIELDS = ("instances",)
-TMP_SUFFIX = ".tmp"
+
+
+def shard_temp_path(final: Path, token: str | None = None) -> Path:
+    """Where this process (or the one with ``token``) writes a shard file before renaming it."""
+    return temp_path(final, hidden=True, token=token)
+
+
+def shard_paths(root: Path, split: str, index: int) -> dict[str, Path]:
+    """Final paths of one shard's tables (the layout is ``schema.shard_file``'s)."""
+    return {table: Path(root) / shard_file(table, split, index) for table in ("frames", "objects")}
 
 
 def sha256_file(path: Path, chunk: int = 1 << 20) -> str:
@@ -105,7 +118,7 @@ class _TableStream:
 
     def __init__(self, final: Path, schema: pa.Schema, binary_plain: bool):
         self.final = final
-        self.tmp = final.with_name(f".{final.name}{TMP_SUFFIX}-{os.getpid()}")
+        self.tmp = shard_temp_path(final)
         self.schema = schema
         self.rows = 0
         leaves = {f.name: _leaf_paths(f.name, f.type) for f in schema}
@@ -118,6 +131,7 @@ class _TableStream:
             use_dictionary=[p for n, paths in leaves.items() if n not in UNCOMPRESSED_FIELDS for p in paths if p not in payload],
             column_encoding={p: "PLAIN" for p in payload} or None,
             write_statistics=["scene_id", "view_id"] if "view_id" in leaves else ["scene_id"],
+            write_page_checksum=True,
         )
 
     def write(self, table: pa.Table) -> None:
@@ -187,7 +201,9 @@ class FrameSink:
         self._rows.append(row)
         if len(self._rows) > MAX_ROWS_PER_GROUP and self._spill_dir is not None:
             if self._spill is None:
-                name = f"{quote(self.scene_id, safe='')}-{uuid.uuid4().hex[:12]}.parquet"  # ids may hold "/"
+                # ids may hold "/"; the token names the writer, so only a gone writer's spills are reaped
+                name = f"{quote(self.scene_id, safe='')}-{uuid.uuid4().hex[:12]}.{process_token()}.parquet"
+                Path(self._spill_dir).mkdir(parents=True, exist_ok=True)
                 self._spill = _TableStream(Path(self._spill_dir) / name, table_schema("frames"), True)
             self._spill.write(frames_table(self._rows[:MAX_ROWS_PER_GROUP], self._spill.schema))
             del self._rows[:MAX_ROWS_PER_GROUP]
@@ -322,13 +338,23 @@ class ShardWriter:
             self.abort()
 
 
+def size_problem(path: Path, info: dict[str, Any]) -> str | None:
+    """Why a shard file is not the size its manifest entry says (missing, truncated, replaced)."""
+    try:
+        size = path.stat().st_size
+    except FileNotFoundError:
+        return f"{path}: missing"
+    if size != info["bytes"]:
+        return f"{path}: size {size} bytes, expected {info['bytes']} (truncated or replaced)"
+    return None
+
+
 def verify_file(root: Path, info: dict[str, Any]) -> str | None:
     """Why a shard file does not match its recorded size/checksum/footer, or None if it does."""
     path = Path(root) / info["file"]
-    if not path.exists():
-        return f"{path}: missing"
-    if path.stat().st_size != info["bytes"]:
-        return f"{path}: size {path.stat().st_size} bytes, expected {info['bytes']} (truncated or replaced)"
+    problem = size_problem(path, info)
+    if problem:
+        return problem
     try:
         rows = pq.ParquetFile(path).metadata.num_rows
     except Exception as exc:  # pyarrow raises several types for broken footers
@@ -340,15 +366,32 @@ def verify_file(root: Path, info: dict[str, Any]) -> str | None:
     return None
 
 
-def remove_stale_temp_files(root: Path) -> int:
-    """Delete the temp files of killed runs (any layout, so v1 builds' leftovers go too)."""
-    stale = list(Path(root).rglob(f"*.parquet{TMP_SUFFIX}-*"))
-    for path in stale:
-        path.unlink(missing_ok=True)
-    return len(stale)
+VERIFY_MODES = ("size", "sha256")  # what readers check on open; sha256 reads each shard once more
 
 
 def raise_if_invalid(root: Path, info: dict[str, Any]) -> None:
     problem = verify_file(root, info)
     if problem:
         raise UslError(problem)
+
+
+def open_shard(root: Path, info: dict[str, Any]) -> pq.ParquetFile:
+    """A manifest's shard file, opened only if its size is what the manifest says (a stat catches
+    truncated and replaced files); page checksums are verified on every read from it."""
+    path = Path(root) / info["file"]
+    problem = size_problem(path, info)
+    if problem:
+        raise UslError(problem)
+    try:
+        return pq.ParquetFile(path, page_checksum_verification=True)
+    except Exception as exc:  # pyarrow raises several types for broken footers
+        raise UslError(f"{path}: cannot open Parquet shard ({one_line(exc)})") from exc
+
+
+def read_shard_table(root: Path, info: dict[str, Any], columns: Sequence[str] | None = None) -> pa.Table:
+    """A whole (size-checked) shard file as one table; any read failure is one line naming the file."""
+    file = open_shard(root, info)
+    try:
+        return file.read(columns=list(columns) if columns else None)
+    except Exception as exc:  # corrupt pages: checksum, decompression or decoding errors
+        raise UslError(f"{Path(root) / info['file']}: cannot read ({one_line(exc)})") from exc

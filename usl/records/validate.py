@@ -16,8 +16,8 @@ import yaml
 from tqdm import tqdm
 
 from .card import CARD, card_configs
-from .encode import decode_image, decode_mask
-from .errors import UslError
+from .encode import decode_image, decode_mask, encode_mask
+from .errors import UslError, one_line
 from .manifest import load_manifest
 from .schema import HF_METADATA_KEY, SCHEMA_VERSION, dataset_schema, read_metadata, required_fields, table_schema
 from .shards import verify_file
@@ -54,9 +54,11 @@ def _check_instance(inst: dict[str, Any], height: int, width: int) -> list[str]:
         return [f"{where}: mask size {inst['mask']['size']} != image size [{height}, {width}]"]
     try:
         mask = decode_mask(inst["mask"])
-    except Exception as exc:  # pycocotools raises plain Exceptions for bad RLE
-        return [f"{where}: mask RLE does not decode ({exc})"]
+    except UslError as exc:
+        return [f"{where}: {exc}"]
     problems = []
+    if encode_mask(mask)["counts"] != inst["mask"]["counts"]:  # pycocotools decodes a cut RLE silently
+        problems.append(f"{where}: mask RLE is corrupt (it does not re-encode to itself)")
     if int(mask.sum()) != inst["area"]:
         problems.append(f"{where}: area {inst['area']} != mask pixel count {int(mask.sum())}")
     x0, y0, x1, y1 = inst["box_xyxy"]
@@ -67,7 +69,7 @@ def _check_instance(inst: dict[str, Any], height: int, width: int) -> list[str]:
 
 def _open_table(path: Path, table: str) -> tuple[pq.ParquetFile, int, list[str]]:
     """The file, its schema version, and what is wrong with its Arrow schema or metadata."""
-    file = pq.ParquetFile(path)
+    file = pq.ParquetFile(path, page_checksum_verification=True)
     meta = read_metadata(file.schema_arrow, str(path))
     version = meta["schema_version"]
     if not file.schema_arrow.remove_metadata().equals(table_schema(table, version)):
@@ -212,5 +214,5 @@ def validate_dataset(
         except UslError as exc:
             problems.append(str(exc))
         except Exception as exc:  # a shard that breaks pyarrow must still be reported, not crash the check
-            problems.append(f"{name}: unreadable ({type(exc).__name__}: {exc})")
+            problems.append(f"{name}: unreadable ({type(exc).__name__}: {one_line(exc)})")
     return problems

@@ -81,11 +81,15 @@ def test_scenes_missing_from_the_csvs_are_errors_naming_the_csv(inputs, tmp_path
     assert f"{split_csv}: scene ai_002_001" in capsys.readouterr().err
 
 
-def test_missing_pose_file_stops_the_build_naming_it(inputs, tmp_path, capsys):
+def test_missing_pose_file_is_a_recorded_skip_or_stops_the_build_naming_it(inputs, tmp_path, capsys):
     scene = shutil.copytree(inputs.scenes_root / "ai_002_001", tmp_path / "ai_002_001")
     (scene / "_detail" / "cam_00" / "camera_keyframe_positions.hdf5").unlink()
     argv = inputs.argv(tmp_path / "out")
     argv[0] = str(scene)
-    assert main(argv) == 2
-    assert "ai_002_001/_detail/cam_00/camera_keyframe_positions.hdf5: file not found" in capsys.readouterr().err
+    message = "ai_002_001/_detail/cam_00/camera_keyframe_positions.hdf5: file not found"
+    assert main(argv + ["--no-skip-bad-scenes"]) == 2
+    assert message in capsys.readouterr().err
     assert not (tmp_path / "out" / "manifest.json").exists()
+    # By default the scene becomes a skip; here it was the only one with views, so the build fails.
+    assert main(argv) == 2
+    assert "every scene built so far failed" in capsys.readouterr().err

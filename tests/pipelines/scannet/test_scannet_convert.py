@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import pickle
+import shutil
 from collections import defaultdict
 
 import numpy as np
@@ -157,6 +158,28 @@ def test_bad_input_fails_with_the_file_named(synthetic, tmp_path, capsys):
                "--splits-dir", str(synthetic.splits), "--masks", "scannet-labels", "--label-map", str(synthetic.labels)]
     assert main(missing) == 2
     assert "scan folder(s) missing, e.g. scene0002_00" in capsys.readouterr().err
+
+
+def test_a_bad_scan_among_good_ones_is_a_recorded_skip_and_the_build_completes(synthetic, tmp_path, capsys):
+    scans, splits = tmp_path / "scans", tmp_path / "splits"
+    (scans / SENS_SCENE).mkdir(parents=True)
+    data = synthetic.sens.read_bytes()
+    (scans / SENS_SCENE / f"{SENS_SCENE}.sens").write_bytes(data[: len(data) // 2])
+    shutil.copytree(synthetic.exported, scans / EXPORTED_SCENE)
+    splits.mkdir()
+    (splits / "scannetv2_train.txt").write_text(f"{SENS_SCENE}\n{EXPORTED_SCENE}\n")
+    args = ["--out", str(tmp_path / "out"), "--quiet", "--scans-root", str(scans), "--splits-dir", str(splits),
+            "--splits", "train", "--masks", "scannet-labels", "--label-map", str(synthetic.labels),
+            "--stride", "2", "--size", "48x36"]
+    assert main(args + ["--no-skip-bad-scenes"]) == 2
+    assert f"{SENS_SCENE}.sens: truncated .sens file" in capsys.readouterr().err
+    assert main(args) == 0
+    skips = [s for s in load_manifest(tmp_path / "out")["skips"] if s["reason"].startswith("scene not converted")]
+    assert len(skips) == 1 and f"{SENS_SCENE}.sens: truncated .sens file" in skips[0]["reason"]
+    assert skips[0]["path"] == str(scans / SENS_SCENE)
+    assert RecordsDataset(tmp_path / "out", "train").scene_ids == [EXPORTED_SCENE]
+    assert validate_dataset(tmp_path / "out") == []
+    assert main(args) == 0 and "built 0 shard(s), kept 1" in capsys.readouterr().out
 
 
 def test_manifest_records_the_tracking_arguments(converted):
