@@ -130,7 +130,7 @@ def test_non_finite_loss_skips_the_step(records, tmp_path):
     assert values["skipped"] == 0.0
     assert any(not torch.equal(before[k], v) for k, v in trainer.model.named_parameters())
     assert all(p.grad is None for p in trainer.step.params)  # nothing left over for the next step
-    trainer.step = lambda batch: {"loss": float("nan"), "skipped": 1.0}  # from now on every step is non-finite
+    trainer.step = lambda batch, **_: {"loss": float("nan"), "skipped": 1.0}  # from now on every step is non-finite
     with pytest.raises(TooManySkippedSteps, match="6 of the last 6 steps"):  # defaults: > 0.25 of 20
         trainer.train()
     assert trainer.iteration == 5

@@ -17,7 +17,7 @@ from pipelines.hypersim.metadata import read_camera_csv, read_split_csv
 from pipelines.scene_shapes.cli import main as scene_shapes_main
 from usl.data import CategoryIndex, MultiViewDataset
 from usl.config import DataConfig
-from usl.engine.evaluate import main as eval_main
+from usl.engine.eval_cli import main as eval_main
 from usl.records import RecordsDataset, SceneRecord, UslError
 from usl.records.cli import main as records_main
 from usl.records.shards import shard_paths

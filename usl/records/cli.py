@@ -59,6 +59,8 @@ def main(argv: list[str] | None = None) -> int:
 
     try:
         if args.command == "gather":
+            from .gather import gather
+
             summary = gather(args.parts, args.out, progress=True)
             print(f"{args.out}: copied {summary.copied} shard(s), kept {summary.kept}")
             if summary.missing:
