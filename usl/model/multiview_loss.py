@@ -108,8 +108,8 @@ def multiview_silhouette_loss(
         xent = xent._replace(gate=xent.gate | torch.cat(pairs.is_input))
     weight = torch.cat(pairs.weight)
     dist_factor = cfg.dist_scale * cfg.dist_schedule(iteration)
-    dist_part = (dist_factor * dist * weight).sum()
-    xent_part = (l2d_loss(torch.zeros_like(dist), xent) * weight).sum()
+    l3d = (l2d_loss(dist_factor * dist, xent) * weight).sum()
+    dist_part = (dist_factor * dist * weight).sum()  # the gated l_xent part is the rest of l_2D
     stats = {
         "l_dist": dist.detach().mean(),
         "l_xent": xent.loss.detach().mean(),
@@ -118,7 +118,7 @@ def multiview_silhouette_loss(
         "xent_gate": xent.gate.float().mean(),
         "dist_factor": torch.tensor(dist_factor),
     }
-    return SilhouetteLoss(dist_part + xent_part, dist_part, xent_part, stats)
+    return SilhouetteLoss(l3d, dist_part, l3d - dist_part, stats)
 
 
 def _gather_pairs(
