@@ -165,6 +165,14 @@ class LossConfig:
     # left out of this object's l_xent (it may be hidden there), instead of teaching it to carve
     # away what an occluder covers. False: the paper's per-object comparison.
     ignore_occluders: bool = False
+    # Weight of the input view's (object, view) pairs relative to the other views' in each
+    # image's mean (1 = the paper's uniform mean). The input view is where the 2D box fixes the
+    # frustum, so its silhouette depends on the shape alone; >1 asks the shape to fit it first.
+    input_view_weight: float = 1.0
+
+    def __post_init__(self) -> None:
+        if self.input_view_weight <= 0:
+            raise ConfigError(f"loss.input_view_weight must be > 0, got {self.input_view_weight}")
 
 
 @dataclass
