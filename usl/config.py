@@ -84,6 +84,11 @@ class ShapeHeadConfig:
     # GraphConv weight init: "normal" N(0, 0.01²) (Mesh R-CNN) | "kaiming" (He init for the
     # neighbourhood sum): with "normal" three GraphConvs pass ~1% of the image features on
     graph_conv_init: str = "normal"
+    # A learned template per category, added to the ico-sphere before the first stage: the
+    # category mean shape of category-specific reconstruction (CMR, Kanazawa et al. 2018), so the
+    # stages refine a table- or sofa-like mesh instead of growing it from a sphere. False: the
+    # paper's (and Mesh R-CNN's) class-agnostic sphere.
+    category_templates: bool = False
 
     def __post_init__(self) -> None:
         _check_choice("model.shape.sampler", self.sampler, ("roimap", "vertalign"))

@@ -61,7 +61,9 @@ class SilhouetteLoss(NamedTuple):
     """L_3D = dist + xent, its two weighted parts (kept apart for gradient diagnostics), and
     detached statistics: mean l_dist, mean l_xent, l_xent without BCE's clamp mass
     (``l_xent_reached``), the fraction of true pixels no face reaches (``unreached``), the
-    fraction of pairs the IoU gate lets into l_xent (``xent_gate``) and l_dist's current factor."""
+    fraction of pairs the IoU gate lets into l_xent (``xent_gate``), the soft silhouettes' mean
+    IoU in the input view and in the other views (``iou_input``, ``iou_views``: the training-side
+    counterparts of usl-eval's Mask IoU without occlusion) and l_dist's current factor."""
 
     l3d: Tensor
     dist: Tensor
@@ -105,8 +107,9 @@ def multiview_silhouette_loss(
         render.padding, ignore_masks=pairs.occluders if cfg.ignore_occluders else None,
     )
     xent = silhouette_bce_loss(rendered.soft, rendered.target, rendered.valid, cfg.iou_threshold)
+    is_input = torch.cat(pairs.is_input)
     if not cfg.gate_input_view:
-        xent = xent._replace(gate=xent.gate | torch.cat(pairs.is_input))
+        xent = xent._replace(gate=xent.gate | is_input)
     weight = torch.cat(pairs.weight)
     dist_factor = cfg.dist_scale * cfg.dist_schedule(iteration)
     l3d = (l2d_loss(dist_factor * dist, xent) * weight).sum()
@@ -117,8 +120,11 @@ def multiview_silhouette_loss(
         "l_xent_reached": xent.loss_reached.mean(),
         "unreached": xent.unreached.mean(),
         "xent_gate": xent.gate.float().mean(),
+        "iou_input": xent.iou[is_input].mean(),
         "dist_factor": torch.tensor(dist_factor),
     }
+    if not is_input.all():
+        stats["iou_views"] = xent.iou[~is_input].mean()
     return SilhouetteLoss(l3d, dist_part, l3d - dist_part, stats)
 
 

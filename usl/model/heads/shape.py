@@ -7,6 +7,8 @@ GraphConvs on [features, positions] and predicts offsets with a Linear on [featu
 each dV_i lie in [-1, 1]; V itself is not clamped (a clamp would stop the gradient of any vertex
 that touches the cube's faces), and the frustum map guards points beyond the far plane
 (``usl.geometry.frustum``). The pre-tanh offsets are kept for the ½‖dV‖² regularizer.
+``category_templates`` (an option, off in the paper's recipes) starts each object from its
+category's learned mean shape ``V_0 = sphere + T_c`` instead of the bare sphere.
 """
 from __future__ import annotations
 
@@ -55,12 +57,16 @@ class RefinementStage(nn.Module):
 
 
 class ShapeHead(nn.Module):
-    def __init__(self, feature_channels: int, feature_stride: int, cfg: ShapeHeadConfig):
+    """``num_classes`` sizes the per-category templates (``cfg.category_templates``)."""
+
+    def __init__(self, feature_channels: int, feature_stride: int, cfg: ShapeHeadConfig, num_classes: int = 1):
         super().__init__()
         self.cfg = cfg
         self.stride = feature_stride
         verts, faces = ico_sphere(cfg.ico_level)
         self.register_buffer("sphere_verts", verts, persistent=False)
+        # zeros: every template starts as the sphere, so a fresh head is the paper's
+        self.templates = nn.Parameter(torch.zeros(num_classes, *verts.shape)) if cfg.category_templates else None
         self.register_buffer("faces", faces, persistent=False)
         self.register_buffer("edges", unique_edges(faces, verts.shape[0]), persistent=False)
         self.pooler = (
@@ -73,13 +79,18 @@ class ShapeHead(nn.Module):
             for _ in range(cfg.num_stages)
         )
 
-    def forward(self, features: Mapping[str, Tensor], boxes: list[Tensor]) -> ShapePrediction:
-        """Deform one sphere per box; ``boxes`` is a list over images of (N_i, 4) input-pixel boxes."""
+    def forward(self, features: Mapping[str, Tensor], boxes: list[Tensor], labels: Tensor | None = None) -> ShapePrediction:
+        """Deform one sphere per box; ``boxes`` is a list over images of (N_i, 4) input-pixel boxes,
+        ``labels`` the (N,) flat category indices (needed with category templates)."""
         flat_boxes = torch.cat(boxes).float()
         image_index = torch.repeat_interleave(
             torch.arange(len(boxes), device=flat_boxes.device), torch.tensor([len(b) for b in boxes], device=flat_boxes.device)
         )
         verts = self.sphere_verts.expand(len(flat_boxes), -1, -1)
+        if self.templates is not None:
+            if labels is None:
+                raise ValueError("ShapeHead: model.shape.category_templates needs the objects' labels")
+            verts = verts + self.templates[labels.long()]
         roi_features = self.pooler(features, boxes) if self.pooler is not None else None
         stage_verts, offsets = [], []
         for stage in self.stages:
