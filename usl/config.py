@@ -193,11 +193,17 @@ class OptimConfig:
     warmup_factor: float = 0.001  # rate at iteration 0 of the warm-up, as a fraction of lr
     max_iter: int = 1000  # iterations to train
     clip_grad_norm: float = 0.0  # 0 disables clipping (the norm is still checked for NaN/inf)
+    # Learning-rate factors by parameter-name prefix, e.g. {shape_head: 10}: the longest matching
+    # prefix wins, other parameters keep lr. Empty: one rate for the whole model (the paper).
+    lr_mult: dict[str, float] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         _check_choice("optim.name", self.name, ("sgd", "adam"))
         _check_choice("optim.schedule", self.schedule, ("step", "constant"))
         _check_positive("optim.max_iter", self.max_iter)
+        bad = {k: v for k, v in self.lr_mult.items() if not v > 0}
+        if bad:
+            raise ConfigError(f"optim.lr_mult: factors must be > 0, got {bad}")
 
 
 @dataclass
@@ -314,6 +320,10 @@ def _convert(tp: Any, value: Any, where: str) -> Any:
         if len(args) != len(value):
             raise ConfigError(f"{where}: expected {len(args)} values, got {len(value)}")
         return tuple(_convert(a, v, f"{where}[{i}]") for i, (a, v) in enumerate(zip(args, value)))
+    if origin is dict:
+        if not isinstance(value, Mapping):
+            raise ConfigError(f"{where}: expected a mapping, got {value!r}")
+        return {_convert(args[0], k, where): _convert(args[1], v, f"{where}.{k}") for k, v in value.items()}
     if origin is list:
         if not isinstance(value, (list, tuple)):
             raise ConfigError(f"{where}: expected a list, got {value!r}")

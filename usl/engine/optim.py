@@ -10,11 +10,23 @@ from torch import nn
 from usl.config import OptimConfig
 
 
-def build_optimizer(params: Iterable[nn.Parameter], cfg: OptimConfig) -> torch.optim.Optimizer:
-    trainable = [p for p in params if p.requires_grad]
+def build_optimizer(named_params: Iterable[tuple[str, nn.Parameter]], cfg: OptimConfig) -> torch.optim.Optimizer:
+    """One parameter group per learning-rate factor (``cfg.lr_mult``); the schedule scales them all."""
+    groups: dict[float, list[nn.Parameter]] = {}
+    matched = set()
+    for name, param in named_params:
+        if not param.requires_grad:
+            continue
+        prefix = max((k for k in cfg.lr_mult if name == k or name.startswith(k + ".")), key=len, default=None)
+        matched.add(prefix)
+        groups.setdefault(cfg.lr_mult[prefix] if prefix is not None else 1.0, []).append(param)
+    unused = sorted(set(cfg.lr_mult) - matched)
+    if unused:
+        raise ValueError(f"optim.lr_mult: no trainable parameter is named {unused} or below it")
+    param_groups = [{"params": params, "lr": cfg.lr * factor} for factor, params in groups.items()]
     if cfg.name == "adam":
-        return torch.optim.Adam(trainable, lr=cfg.lr, weight_decay=cfg.weight_decay)
-    return torch.optim.SGD(trainable, lr=cfg.lr, momentum=cfg.momentum, weight_decay=cfg.weight_decay)
+        return torch.optim.Adam(param_groups, lr=cfg.lr, weight_decay=cfg.weight_decay)
+    return torch.optim.SGD(param_groups, lr=cfg.lr, momentum=cfg.momentum, weight_decay=cfg.weight_decay)
 
 
 class LRFactor:

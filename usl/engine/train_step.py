@@ -31,7 +31,7 @@ class TrainStep:
                 find_unused_parameters=not cfg.loss.weights.mu_2d,  # without L_2D, FPN levels go unused
             )
         self.params = [p for p in self.model.parameters() if p.requires_grad]
-        self.optimizer = build_optimizer(self.params, cfg.optim)
+        self.optimizer = build_optimizer(self.model.named_parameters(), cfg.optim)
         self.scheduler = build_scheduler(self.optimizer, cfg.optim)
         self.amp_dtype = AMP_DTYPES.get(cfg.train.amp) if info.device.type == "cuda" else None
         self.scaler = torch.amp.GradScaler("cuda", enabled=self.amp_dtype is torch.float16)

@@ -1,0 +1,46 @@
+"""Parameter groups of optim.lr_mult, and the schedule over them."""
+import pytest
+import torch
+from torch import nn
+
+from usl.config import ConfigError, OptimConfig, load_config
+from usl.engine.optim import build_optimizer, build_scheduler
+
+
+def _net() -> nn.Module:
+    net = nn.Module()
+    net.backbone = nn.Linear(2, 2)
+    net.head = nn.Module()
+    net.head.stage = nn.Linear(2, 2)
+    net.head.out = nn.Linear(2, 1)
+    net.frozen = nn.Linear(2, 2).requires_grad_(False)
+    return net
+
+
+def _rates(optimizer: torch.optim.Optimizer, net: nn.Module) -> dict[str, float]:
+    rate = {id(p): g["lr"] for g in optimizer.param_groups for p in g["params"]}
+    return {name: rate[id(p)] for name, p in net.named_parameters() if p.requires_grad}
+
+
+def test_longest_prefix_sets_each_parameters_rate_and_the_schedule_scales_all():
+    net = _net()
+    cfg = OptimConfig(name="adam", lr=1e-3, schedule="step", steps=(2,), gamma=0.1, lr_mult={"head": 10.0, "head.out": 2.0})
+    optimizer = build_optimizer(net.named_parameters(), cfg)
+    expected = {"backbone": 1e-3, "head.stage": 1e-2, "head.out": 2e-3}
+    rates = _rates(optimizer, net)
+    assert set(rates) == {f"{m}.{k}" for m in expected for k in ("weight", "bias")}  # frozen ones left out
+    assert all(rates[name] == pytest.approx(expected[name.rsplit(".", 1)[0]]) for name in rates)
+    scheduler = build_scheduler(optimizer, cfg)
+    for _ in range(2):
+        optimizer.step()
+        scheduler.step()
+    assert all(r == pytest.approx(0.1 * expected[n.rsplit(".", 1)[0]]) for n, r in _rates(optimizer, net).items())
+
+
+def test_lr_mult_errors_name_the_bad_entry():
+    with pytest.raises(ValueError, match="headx"):
+        build_optimizer(_net().named_parameters(), OptimConfig(lr_mult={"headx": 2.0}))  # a prefix, not a word part
+    with pytest.raises(ConfigError, match="lr_mult"):
+        OptimConfig(lr_mult={"head": 0.0})
+    cfg = load_config("tiny", ["optim.lr_mult={shape_head: 10}"])
+    assert cfg.optim.lr_mult == {"shape_head": 10.0}
