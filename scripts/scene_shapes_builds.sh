@@ -11,11 +11,13 @@
 # shape models, other scenes) in $HELDOUT = DATA/heldout_seed1. Every split of the held-out build
 # is unseen; score its train split, the largest.
 
+cores() { env -u OMP_NUM_THREADS -u OMP_THREAD_LIMIT nproc; }  # GNU nproc obeys OMP_NUM_THREADS
+
 build_scene_shapes() {  # OUT SEED SCENES [builder options]
   local out=$1 seed=$2 scenes=$3
   shift 3
   python3 -m pipelines.scene_shapes.cli --out "$out" --seed "$seed" --num-scenes "$scenes" --num-models "$scenes" \
-    --resolution 128 --views 8 --heights 2 --workers "$(nproc)" "$@"
+    --resolution 128 --views 8 --heights 2 --workers "$(cores)" "$@"
 }
 
 experiment_builds() {  # DATA TRAIN_SCENES HELDOUT_SCENES [builder options]

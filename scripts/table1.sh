@@ -6,14 +6,14 @@
 #
 #   bash scripts/table1.sh                  # every row, seeds 0,1,2, the tiny recipe's own budget
 #   bash scripts/table1.sh --dry-run        # print the budget (iterations, runs, estimated time) only
-#   bash scripts/table1.sh --quick          # smoke run: 10-scene builds, 20 iterations, 2 seeds (~3 min)
+#   bash scripts/table1.sh --quick          # smoke run: 10-scene builds, 10 iterations, 2 seeds (~3 min)
 #   bash scripts/table1.sh --seeds 0,1,2,3,4 --iters 600 --out runs/table1_600
 #
 # Options: --seeds LIST (train.seed values; default 0,1,2, --quick 0,1), --iters N (per run;
 # default the recipe's optim.max_iter, and the recipe's schedule is scaled to another N),
 # --out DIR (default runs/table1, --quick runs/table1_quick), --data DIR (the builds; default
 # runs/experiments/data, the builds of scripts/recipe_experiment.sh, --quick OUT/data),
-# --jobs N (runs side by side, one thread each; default nproc), --config RECIPE (default tiny).
+# --jobs N (runs side by side, one thread each; default: the cores), --config RECIPE (default tiny).
 # Rows and their overrides: scripts/table1_plan.py. A row whose config key this checkout lacks is
 # reported as "skipped: key not available". The budget is printed before anything runs.
 #
@@ -26,10 +26,10 @@ cd "$(dirname "$0")/.."
 export PYOPENGL_PLATFORM=${PYOPENGL_PLATFORM:-egl}
 # this checkout's code (python -m, not the console scripts), whatever pip last installed
 export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}"
+source scripts/scene_shapes_builds.sh
+ARGS="$*" QUICK=0 DRY=0 SEEDS= ITERS= OUT= DATA= JOBS=$(cores) CONFIG=tiny
 # one thread per process: --jobs processes share the cores (oversubscribed threads slow every op)
 export OMP_NUM_THREADS=1 MKL_NUM_THREADS=1
-
-ARGS="$*" QUICK=0 DRY=0 SEEDS= ITERS= OUT= DATA= JOBS=$(nproc) CONFIG=tiny
 usage() { sed -n '2,/^set -e/p' "$0" | sed '$d' | sed 's/^# \{0,1\}//'; }
 value() { [[ -n ${2:-} ]] || { echo "table1.sh: error: $1 needs a value" >&2; exit 2; }; }
 while (($#)); do
@@ -50,7 +50,7 @@ done
 
 EXTRA=() EVAL_OPTS=(--pictures 2)
 if ((QUICK)); then
-  SEEDS=${SEEDS:-0,1} ITERS=${ITERS:-20} OUT=${OUT:-runs/table1_quick} DATA=${DATA:-$OUT/data}
+  SEEDS=${SEEDS:-0,1} ITERS=${ITERS:-10} OUT=${OUT:-runs/table1_quick} DATA=${DATA:-$OUT/data}
   SCENES=10 EXTRA=(val.period=0) EVAL_OPTS=(--pictures 1 --samples-3d 2000)
 else
   SEEDS=${SEEDS:-0,1,2} OUT=${OUT:-runs/table1} DATA=${DATA:-runs/experiments/data} SCENES=60
@@ -58,15 +58,15 @@ fi
 [[ $SEEDS =~ ^[0-9]+(,[0-9]+)*$ ]] || { echo "table1.sh: error: --seeds $SEEDS is not a comma-separated list of integers" >&2; exit 2; }
 [[ $JOBS =~ ^[1-9][0-9]*$ ]] || { echo "table1.sh: error: --jobs $JOBS is not a positive integer" >&2; exit 2; }
 IFS=, read -ra SEED_LIST <<< "$SEEDS"
-source scripts/scene_shapes_builds.sh
 TRAIN=$DATA/train_seed0_$SCENES HELDOUT=$DATA/heldout_seed1  # as experiment_builds names them
-EVAL_VIEWS=every:8
+EVAL_VIEWS=every:8  # of the 8 views per scene: one input view per scene of the split (80% of the scenes)
 start=$(date +%s)
 
 echo "== Table 1 at CPU scale -> $OUT"
 mkdir -p "$OUT"
 python3 scripts/table1_plan.py --config "$CONFIG" ${ITERS:+--iters "$ITERS"} --seeds "$SEEDS" --jobs "$JOBS" --out "$OUT" \
   --data "train=$TRAIN ($SCENES scenes) heldout=$HELDOUT ($SCENES scenes, split train, input views $EVAL_VIEWS)" \
+  --eval-views $((SCENES * 8 / 10)) \
   ${EXTRA[@]+"${EXTRA[@]}"} | tee "$OUT/plan.txt"
 ((DRY)) && exit 0
 
@@ -118,20 +118,24 @@ run_one() {  # SLUG LABEL SEED OVERRIDES...: train (or resume), then score on th
     what="trained before"
   else
     if [[ -f $run/train/checkpoints/last_checkpoint ]]; then resume=(--resume); else rm -rf "$run/train"; fi
-    python3 -m usl.engine.train ${resume[@]+"${resume[@]}"} --config "$CONFIG" --out "$run/train" data.root="$TRAIN" \
+    # CPU time is the figure that holds on a shared machine (table1_plan.py estimates from it)
+    /usr/bin/time -o "$run/train_time.txt" -f "%e %U" \
+      python3 -m usl.engine.train ${resume[@]+"${resume[@]}"} --config "$CONFIG" --out "$run/train" data.root="$TRAIN" \
       train.seed="$seed" train.cpu_threads=1 "$@" > "$run/train.log" 2>&1 \
       || fail "${slug}_$seed" "$label, seed $seed: usl-train" "$run/train.log" || return 1
-    what=$(awk -v t=$(( $(date +%s) - began )) -v n="$iters" 'BEGIN { printf "trained %d iterations in %d s (%.2f s each)", n, t, t / n }')
+    what=$(awk -v n="$iters" '{ printf "trained %d iterations in %d s wall, %d s CPU (%.2f s CPU each)", n, $1, $2, $2 / n }' \
+      "$run/train_time.txt")
   fi
   local scoring
   scoring=$(date +%s)
   rm -rf "$run/eval.partial"
-  python3 -m usl.engine.eval_cli "$HELDOUT" --split train --input-views "$EVAL_VIEWS" --checkpoint "$run/train" --rows model \
+  /usr/bin/time -o "$run/eval_time.txt" -f "%e %U" \
+    python3 -m usl.engine.eval_cli "$HELDOUT" --split train --input-views "$EVAL_VIEWS" --checkpoint "$run/train" --rows model \
     --device cpu --out "$run/eval.partial" --quiet "${EVAL_OPTS[@]}" > "$run/eval.log" 2>&1 \
     || fail "${slug}_$seed" "$label, seed $seed: usl-eval" "$run/eval.log" || return 1
   mv "$run/eval.partial" "$run/eval"
   echo $(( $(date +%s) - began )) > "$SESSION/${slug}_$seed.s"
-  progress "$label, seed $seed: $what, scored in $(( $(date +%s) - scoring )) s: $(python3 scripts/table1_summary.py --run "$run/eval")"
+  progress "$label, seed $seed: $what; scored in $(( $(date +%s) - scoring )) s: $(python3 scripts/table1_summary.py --run "$run/eval")"
 }
 
 launch() {  # run "$@" in the background once fewer than JOBS runs are going
@@ -140,10 +144,14 @@ launch() {  # run "$@" in the background once fewer than JOBS runs are going
 }
 
 echo "== training and scoring ($total runs, $JOBS at a time; logs in $OUT/runs/<row>/seed<k>/)"
+for line in "${PLAN[@]}"; do
+  IFS=$'\t' read -r slug label status overrides <<< "$line"
+  [[ $status == train ]] || echo "$label: $status" | tee -a "$OUT/progress.log"
+done
 launch baselines
 for line in "${PLAN[@]}"; do
   IFS=$'\t' read -r slug label status overrides <<< "$line"
-  if [[ $status != train ]]; then echo "$label: $status" | tee -a "$OUT/progress.log"; continue; fi
+  [[ $status == train ]] || continue
   read -ra row_overrides <<< "$overrides"
   for seed in "${SEED_LIST[@]}"; do
     launch run_one "$slug" "$label" "$seed" "${row_overrides[@]}"

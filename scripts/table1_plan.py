@@ -13,7 +13,6 @@ schedule (LR steps, warm-up, l_dist schedule) with it, so a shorter budget keeps
 from __future__ import annotations
 
 import argparse
-import csv
 import statistics
 import sys
 from dataclasses import dataclass
@@ -50,12 +49,13 @@ ROWS = (
 )
 TRAINED = tuple(r for r in ROWS if r.trained)
 
-# Seconds per training iteration (one thread, two runs side by side on the 2-core machine, the
-# tiny recipe; median of metrics.csv's `time` column, which includes data loading) from the
-# --quick smoke of 2026-12-01. Used until this output folder has runs of its own to measure.
+# CPU seconds (one thread) measured on this project's 2-core machine with two runs side by side:
+# `bash scripts/table1.sh --quick --iters 20` and `--quick --iters 100 --seeds 0` (2026-12-01);
+# per iteration: the difference of their usl-train CPU times over the 80 extra iterations.
+# Used until the output folder has finished runs of its own (their train_time.txt) to measure.
 MEASURED_SECONDS_PER_ITER = {"usl2": 0.45, "usl5": 0.85, "usl5_vertalign": 0.85, "usl5_no_dist": 0.85, "meshrcnn_3d": 0.5}
-# Start-up, final checkpoint and the held-out evaluation of one run (48 input views), seconds.
-MEASURED_SECONDS_PER_RUN = 60.0
+TRAIN_START_SECONDS = 8.0  # usl-train's start-up and final checkpoint
+EVAL_START_SECONDS, EVAL_SECONDS_PER_VIEW = 4.0, 0.5  # usl-eval --rows model: start-up, and per input view
 
 
 def budget_overrides(recipe: Config, iters: int) -> list[str]:
@@ -94,13 +94,12 @@ def _unknown_key(config: str, override: str) -> bool:
     return False
 
 
-def measured_seconds_per_iter(out: Path, row: Row) -> float:
-    """Median step time of this row's earlier runs in ``out`` (resumed tables), else the constant."""
-    times = []
-    for metrics in sorted((out / "runs" / row.slug).glob("seed*/train/metrics.csv")):
-        with open(metrics, newline="") as f:
-            times += [float(r["time"]) for r in csv.DictReader(f) if r.get("time")]
-    return statistics.median(times) if times else MEASURED_SECONDS_PER_ITER[row.slug]
+def measured_seconds_per_iter(out: Path, row: Row, iters: int) -> float:
+    """CPU seconds per iteration of this row's finished runs in ``out`` (table1.sh's
+    ``train_time.txt``: wall and user CPU seconds of a whole run), else the measured constant."""
+    cpu = [float(t.read_text().split()[1]) for t in sorted((out / "runs" / row.slug).glob("seed*/train_time.txt"))
+           if len(t.read_text().split()) == 2]
+    return statistics.fmean(cpu) / iters if cpu else MEASURED_SECONDS_PER_ITER[row.slug]
 
 
 def duration(seconds: float) -> str:
@@ -119,9 +118,10 @@ def check_budget(out: Path, stamp: str) -> None:
 
 
 def plan(config: str, iters: int | None, seeds: Sequence[int], jobs: int, out: Path, extra: Sequence[str] = (),
-         data: str = "") -> str:
+         data: str = "", eval_views: int = 48) -> str:
     """Write ``out/plan.tsv``; return the budget text to print. ``data``: the builds and the
-    evaluation protocol, recorded with the budget."""
+    evaluation protocol, recorded with the budget; ``eval_views``: input views each run is scored on."""
+    per_run = TRAIN_START_SECONDS + EVAL_START_SECONDS + eval_views * EVAL_SECONDS_PER_VIEW
     recipe = load_config(config)
     iters = iters or recipe.optim.max_iter
     budget = budget_overrides(recipe, iters) + list(extra)
@@ -133,9 +133,9 @@ def plan(config: str, iters: int | None, seeds: Sequence[int], jobs: int, out: P
         lines.append("\t".join([row.slug, row.label, status, " ".join(overrides)]))
         if status == "train":
             trained.append(row)
-            rate = measured_seconds_per_iter(out, row)
+            rate = measured_seconds_per_iter(out, row, iters)
             rates.append(f"{row.slug} {rate:.2f}")
-            cost += len(seeds) * (iters * rate + MEASURED_SECONDS_PER_RUN)
+            cost += len(seeds) * (iters * rate + per_run)
     (out / "plan.tsv").write_text("\n".join(lines) + "\n")
     runs = len(trained) * len(seeds)
     skipped = [f"{label}: {status}" for _, label, status, _ in (line.split("\t") for line in lines) if status != "train"]
@@ -144,7 +144,7 @@ def plan(config: str, iters: int | None, seeds: Sequence[int], jobs: int, out: P
         f"{iters} iterations ({runs * iters:,} in all), recipe {config}, {jobs} at a time with 1 thread each",
         f"  overrides of every run: {' '.join(budget)}",
         f"  seconds per iteration: {', '.join(rates) or '-'} (measured, see scripts/table1_plan.py), "
-        f"plus ~{MEASURED_SECONDS_PER_RUN:.0f} s per run for start-up and the held-out evaluation",
+        f"plus ~{per_run:.0f} s per run for start-up and scoring {eval_views} held-out input views",
         f"  estimated time: {duration(cost / max(jobs, 1))} on {jobs} idle cores, not counting the builds and runs already done",
     ]
     text += [f"  {s}" for s in skipped]
@@ -159,10 +159,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--jobs", type=int, default=2, help="runs trained side by side")
     p.add_argument("--out", required=True, help="the table's output folder")
     p.add_argument("--data", default="", help="the builds and evaluation protocol, recorded with the budget")
+    p.add_argument("--eval-views", type=int, default=48, help="held-out input views each run is scored on")
     p.add_argument("extra", nargs="*", metavar="key=value", help="more overrides for every run")
     args = p.parse_args(argv)
     try:
-        print(plan(args.config, args.iters, [int(s) for s in args.seeds.split(",")], args.jobs, Path(args.out), args.extra, args.data))
+        print(plan(args.config, args.iters, [int(s) for s in args.seeds.split(",")], args.jobs, Path(args.out), args.extra,
+                   args.data, args.eval_views))
     except (ConfigError, ValueError) as exc:
         print(f"table1_plan: error: {exc}", file=sys.stderr)
         return 2
