@@ -4,7 +4,8 @@
 
 Writes ``OUT/plan.tsv`` for ``scripts/table1.sh``, one line per trained row (slug, label, status,
 the usl-train overrides of its runs), and prints the budget: iterations per run, runs, and the
-estimated time. A row whose config key this checkout's usl-train does not know is planned as
+estimated time. ``OUT/budget.txt`` records the budget; an output folder holding runs of another
+budget is refused (more seeds are fine). A row whose config key this checkout's usl-train does not know is planned as
 ``skipped: key not available`` instead of failing the table.
 
 ``--iters`` other than the recipe's ``optim.max_iter`` scales the recipe's iteration-valued
