@@ -123,7 +123,7 @@ run_one() {  # SLUG LABEL SEED OVERRIDES...: train (or resume), then score on th
       python3 -m usl.engine.train ${resume[@]+"${resume[@]}"} --config "$CONFIG" --out "$run/train" data.root="$TRAIN" \
       train.seed="$seed" train.cpu_threads=1 "$@" > "$run/train.log" 2>&1 \
       || fail "${slug}_$seed" "$label, seed $seed: usl-train" "$run/train.log" || return 1
-    what=$(awk -v n="$iters" '{ printf "trained %d iterations in %d s wall, %d s CPU (%.2f s CPU each)", n, $1, $2, $2 / n }' \
+    what=$(awk -v n="$iters" '{ printf "trained %d iterations in %d s wall, %d s CPU (%.2f s per iteration, start-up included)", n, $1, $2, $2 / n }' \
       "$run/train_time.txt")
   fi
   local scoring

@@ -50,13 +50,18 @@ ROWS = (
 )
 TRAINED = tuple(r for r in ROWS if r.trained)
 
-# CPU seconds (one thread) measured on this project's 2-core machine with two runs side by side:
+# CPU seconds (one thread) measured on this project's 2-core machine, two runs side by side:
 # `bash scripts/table1.sh --quick --iters 20` and `--quick --iters 100 --seeds 0` (2026-12-01);
-# per iteration: the difference of their usl-train CPU times over the 80 extra iterations.
-# Used until the output folder has finished runs of its own (their train_time.txt) to measure.
-MEASURED_SECONDS_PER_ITER = {"usl2": 0.45, "usl5": 0.85, "usl5_vertalign": 0.85, "usl5_no_dist": 0.85, "meshrcnn_3d": 0.5}
-TRAIN_START_SECONDS = 8.0  # usl-train's start-up and final checkpoint
-EVAL_START_SECONDS, EVAL_SECONDS_PER_VIEW = 4.0, 0.5  # usl-eval --rows model: start-up, and per input view
+# per iteration: the difference of their usl-train CPU times over the 80 extra iterations
+# (usl2 19 -> 57 s, usl5 26 -> 88 s, usl5_vertalign 26 -> 86 s). Not measured yet, their keys being
+# new: usl5_no_dist (taken as usl5) and meshrcnn_3d (taken as tiny's 3 views: the main job's
+# 900 s CPU for 1,500 iterations). Runs of the output folder replace them (their train_time.txt).
+MEASURED_SECONDS_PER_ITER = {"usl2": 0.48, "usl5": 0.77, "usl5_vertalign": 0.76, "usl5_no_dist": 0.77, "meshrcnn_3d": 0.60}
+TRAIN_START_SECONDS = 10.0  # usl-train's start-up and final checkpoint (20 iterations' CPU less 20 x the above)
+# usl-eval --rows model (10k points per mesh, 2 pictures): start-up, and per input view; from
+# 9.0 s CPU for 8 input views and 32.7 s for 64 (the quick held-out build, every:8 and all).
+# The periodic validation during training (val.period) is not counted.
+EVAL_START_SECONDS, EVAL_SECONDS_PER_VIEW = 5.6, 0.42
 
 
 def budget_overrides(recipe: Config, iters: int) -> list[str]:
