@@ -108,10 +108,12 @@ def summarize(out: Path) -> list[RowSummary]:
                 summaries.append(RowSummary(row, "baseline", [Run(0, "–", 0, predictor_metrics(baselines, row.baseline))]))
             else:
                 summaries.append(RowSummary(row, "no finished run"))
-        elif row.slug in plan:
-            runs = read_runs(out, row) if plan[row.slug] == "train" else []
-            summaries.append(RowSummary(row, ("trained" if runs else "no finished run") if plan[row.slug] == "train"
-                                        else plan[row.slug], runs))
+        elif row.slug in plan:  # rows of this checkout's plan; the plan's status says why a row did not train
+            status, runs = plan[row.slug], []
+            if status == "train":
+                runs = read_runs(out, row)
+                status = "trained" if runs else "no finished run"
+            summaries.append(RowSummary(row, status, runs))
     return summaries
 
 
