@@ -19,12 +19,9 @@ mkdir -p "$OUT"
 start=$(date +%s)
 
 echo "== 1/4 build Scene-Shapes ($DATA) and a held-out build with another seed ($HELDOUT)"
-build() {
-  usl-build-scene-shapes --out "$1" --seed "$2" --num-scenes 60 --num-models 60 --resolution 128 --views 8 --heights 2 \
-    --workers "$(nproc)"
-}
-build "$DATA" 0
-build "$HELDOUT" 1
+source scripts/scene_shapes_builds.sh
+build_scene_shapes "$DATA" 0 60
+build_scene_shapes "$HELDOUT" 1 60
 
 echo "== 2/4 validate and summarise"
 usl-records validate "$DATA"

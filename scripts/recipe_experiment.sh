@@ -22,14 +22,8 @@ RUN=$ROOT/$NAME
 
 # a training build like the main job's (seed 0; USL_EXP_TRAIN_SCENES scenes and as many models),
 # and the main job's held-out build (seed 1, 60 scenes): other shape models, other scenes
-SCENES=${USL_EXP_TRAIN_SCENES:-60}
-TRAIN=$DATA/train_seed0_$SCENES
-build() {
-  python3 -m pipelines.scene_shapes.cli --out "$1" --seed "$2" --num-scenes "$3" --num-models "$3" --resolution 128 --views 8 \
-    --heights 2 --workers "$(nproc)" --quiet
-}
-build "$TRAIN" 0 "$SCENES"
-build "$DATA/heldout_seed1" 1 60
+source scripts/scene_shapes_builds.sh
+experiment_builds "$DATA" "${USL_EXP_TRAIN_SCENES:-60}" 60 --quiet
 
 rm -rf "$RUN" && mkdir -p "$RUN"
 # CPU time is the figure to compare on a shared machine; the progress bar goes to train.log
@@ -38,5 +32,5 @@ rm -rf "$RUN" && mkdir -p "$RUN"
   > "$RUN/train.log" 2>&1 || { tail -5 "$RUN/train.log"; exit 1; }
 cat "$RUN/train_time.txt"
 # every split of the seed-1 build is unseen; its train split is the largest
-python3 -m usl.engine.eval_cli "$DATA/heldout_seed1" --split train --input-views "${USL_EXP_EVAL_VIEWS:-every:4}" --checkpoint "$RUN/train" \
+python3 -m usl.engine.eval_cli "$HELDOUT" --split train --input-views "${USL_EXP_EVAL_VIEWS:-every:4}" --checkpoint "$RUN/train" \
   --rows random,fixed,model --out "$RUN/eval" --pictures 4 --quiet | grep '^|'
