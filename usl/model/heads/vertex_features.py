@@ -43,21 +43,28 @@ def roimap_features(
     if len(feature_maps) != len(strides) or not feature_maps:
         raise ValueError(f"roimap_features: {len(feature_maps)} feature maps for {len(strides)} strides")
     num_objects, num_verts = verts_cube.shape[:2]
-    channels = [m.shape[1] for m in feature_maps]
-    out = feature_maps[0].new_zeros(num_objects, num_verts, sum(channels), dtype=torch.float32)
+    if num_objects == 0:
+        return feature_maps[0].new_zeros(0, num_verts, sum(m.shape[1] for m in feature_maps), dtype=torch.float32)
     uv = project_cube_to_image(verts_cube.float(), boxes.float())
-    images = [(image, torch.nonzero(image_index == image).squeeze(1)) for image in torch.unique(image_index).tolist()]
-    start = 0
-    for feature_map, stride, width in zip(feature_maps, strides, channels):
-        height_k, width_k = feature_map.shape[-2:]
-        extent = torch.tensor([width_k * stride, height_k * stride], dtype=uv.dtype, device=uv.device)
-        grid = 2.0 * uv / extent - 1.0  # float32 even under autocast: bf16 would misplace samples by cells
-        for image, rows in images:
-            points = grid[rows].reshape(1, 1, -1, 2)  # all vertices of this image's objects at once
-            sampled = F.grid_sample(feature_map[image : image + 1].float(), points, align_corners=False)
-            out[rows, :, start : start + width] = sampled.reshape(width, len(rows), num_verts).permute(1, 2, 0)
-        start += width
-    return out
+    # Objects grouped by image (they usually are already): each image's vertices are one block of
+    # grid points, and the blocks' samples are joined, not scattered into a preallocated output.
+    order = torch.argsort(image_index, stable=True)
+    grouped = bool(torch.equal(order, torch.arange(num_objects, device=order.device)))
+    images, counts = torch.unique_consecutive(image_index[order], return_counts=True)
+    blocks = list(zip(images.tolist(), (uv if grouped else uv[order]).split(counts.tolist())))
+    per_map = []
+    for feature_map, stride in zip(feature_maps, strides):
+        height, width = feature_map.shape[-2:]
+        extent = torch.tensor([width * stride, height * stride], dtype=uv.dtype, device=uv.device)
+        samples = [
+            # float32 even under autocast: bf16 would misplace samples by cells
+            F.grid_sample(feature_map[image : image + 1].float(), (2.0 * block / extent - 1.0).reshape(1, 1, -1, 2),
+                          align_corners=False)[0, :, 0]
+            for image, block in blocks
+        ]
+        per_map.append(samples[0] if len(samples) == 1 else torch.cat(samples, dim=1))  # (C_k, N * V)
+    out = torch.cat(per_map, dim=0).reshape(-1, num_objects, num_verts).permute(1, 2, 0)
+    return out if grouped else out[torch.argsort(order)]
 
 
 def vertalign_features(roi_features: Tensor, verts_cube: Tensor) -> Tensor:
