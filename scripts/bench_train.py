@@ -35,9 +35,11 @@ from usl.engine.train_step import TrainStep  # noqa: E402
 from usl.geometry.cameras import intrinsics_from_fov  # noqa: E402
 from usl.records import RecordsDataset  # noqa: E402
 
-RECIPE_DATA = {"tiny": "scene_shapes", "scene_shapes": "scene_shapes", "hypersim": "hypersim", "scannet": "scannet"}
-DEFAULT_SIZE = {"tiny": (128, 128), "scene_shapes": (512, 512), "hypersim": (768, 1024), "scannet": (968, 1296)}
-DEFAULT_OBJECTS = {"tiny": 2, "scene_shapes": 2, "hypersim": 20, "scannet": 8}
+RECIPE_DATA = {"tiny": "scene_shapes", "scene_shapes": "scene_shapes", "scene_shapes_fpn": "scene_shapes",
+               "hypersim": "hypersim", "scannet": "scannet"}
+DEFAULT_SIZE = {"tiny": (128, 128), "scene_shapes": (512, 512), "scene_shapes_fpn": (512, 512),
+                "hypersim": (768, 1024), "scannet": (968, 1296)}
+DEFAULT_OBJECTS = {"tiny": 2, "scene_shapes": 2, "scene_shapes_fpn": 2, "hypersim": 20, "scannet": 8}
 
 
 def ellipse_masks(boxes: torch.Tensor, height: int, width: int) -> torch.Tensor:
