@@ -93,6 +93,11 @@ class ShapeHeadConfig:
     # Bottleneck Linear init: "torch" (PyTorch's default, uniform with std 1/sqrt(3 fan_in)) |
     # "normal" (N(0, 0.01²), bias 0: Mesh R-CNN's)
     bottleneck_init: str = "torch"
+    # A learned template per category, added to the ico-sphere before the first stage: the
+    # category mean shape of category-specific reconstruction (CMR, Kanazawa et al. 2018), so the
+    # stages refine a table- or sofa-like mesh instead of growing it from a sphere. False: the
+    # paper's (and Mesh R-CNN's) class-agnostic sphere.
+    category_templates: bool = False
 
     def __post_init__(self) -> None:
         _check_choice("model.shape.sampler", self.sampler, ("roimap", "vertalign"))
@@ -186,6 +191,14 @@ class LossConfig:
     # left out of this object's l_xent (it may be hidden there), instead of teaching it to carve
     # away what an occluder covers. False: the paper's per-object comparison.
     ignore_occluders: bool = False
+    # Weight of the input view's (object, view) pairs relative to the other views' in each
+    # image's mean (1 = the paper's uniform mean). The input view is where the 2D box fixes the
+    # frustum, so its silhouette depends on the shape alone; >1 asks the shape to fit it first.
+    input_view_weight: float = 1.0
+
+    def __post_init__(self) -> None:
+        if self.input_view_weight <= 0:
+            raise ConfigError(f"loss.input_view_weight must be > 0, got {self.input_view_weight}")
 
 
 @dataclass

@@ -132,3 +132,26 @@ def test_shape_head_shapes_init_and_gradients(sampler):
     head({"p2": fmap}, boxes).verts.square().sum().backward()
     assert fmap.grad is not None and fmap.grad.abs().sum() > 0
     assert head.stages[1].bottleneck.weight.grad.abs().sum() > 0
+
+
+def test_category_templates_start_as_the_sphere_and_learn_per_category():
+    torch.manual_seed(0)
+    cfg = ShapeHeadConfig(ico_level=1, num_stages=2, hidden_dim=16, category_templates=True)
+    head = ShapeHead({"p2": ShapeSpec(8, 4)}, cfg, num_classes=3)
+    plain = ShapeHead({"p2": ShapeSpec(8, 4)}, ShapeHeadConfig(ico_level=1, num_stages=2, hidden_dim=16))
+    plain.load_state_dict({k: v for k, v in head.state_dict().items() if k != "templates"})
+    fmap = torch.randn(1, 8, 16, 16)
+    boxes = [torch.tensor([[4.0, 4.0, 40.0, 30.0], [10.0, 10.0, 60.0, 60.0]])]
+    labels = torch.tensor([2, 0])
+    torch.testing.assert_close(head({"p2": fmap}, boxes, labels).verts, plain({"p2": fmap}, boxes).verts)
+    with torch.no_grad():
+        head.templates[2].fill_(0.25)
+    out = head({"p2": fmap}, boxes, labels).verts
+    sphere, _ = ico_sphere(1)
+    torch.testing.assert_close(out[0], sphere + 0.25)  # the offsets are still zero: V_0 = sphere + template
+    torch.testing.assert_close(out[1], sphere)
+    out.square().sum().backward()
+    assert head.templates.grad[1].abs().sum() == 0  # no object of category 1 in the batch
+    assert head.templates.grad[0].abs().sum() > 0 and head.templates.grad[2].abs().sum() > 0
+    with pytest.raises(ValueError, match="labels"):
+        head({"p2": fmap}, boxes)

@@ -6,8 +6,9 @@ mean over the batch's images. Two choices the paper leaves open:
 * An object not annotated in view j (out of frame, fully occluded, not tracked) has no true
   silhouette there; its (o, j) pair is dropped rather than compared with an empty mask, because
   our renderer draws each object alone (no occluders) and an empty target would push an
-  occluded object out of the view. The per-image mean runs over the remaining pairs; the
-  input view always has every object.
+  occluded object out of the view. The per-image mean runs over the remaining pairs (its
+  input-view pairs weighted ``loss.input_view_weight``, 1 in the paper); the input view always
+  has every object.
 * Every loss term is normalised per image and then averaged over the batch (images without
   objects count as 0), so a batch split over GPUs (DDP averages per-GPU losses) gives exactly
   the gradient of the whole batch on one GPU.
@@ -60,7 +61,9 @@ class SilhouetteLoss(NamedTuple):
     """L_3D = dist + xent, its two weighted parts (kept apart for gradient diagnostics), and
     detached statistics: mean l_dist, mean l_xent, l_xent without BCE's clamp mass
     (``l_xent_reached``), the fraction of true pixels no face reaches (``unreached``), the
-    fraction of pairs the IoU gate lets into l_xent (``xent_gate``) and l_dist's current factor."""
+    fraction of pairs the IoU gate lets into l_xent (``xent_gate``), the soft silhouettes' mean
+    IoU in the input view and in the other views (``iou_input``, ``iou_views``: the training-side
+    counterparts of usl-eval's Mask IoU without occlusion) and l_dist's current factor."""
 
     l3d: Tensor
     dist: Tensor
@@ -104,8 +107,9 @@ def multiview_silhouette_loss(
         render.padding, ignore_masks=pairs.occluders if cfg.ignore_occluders else None,
     )
     xent = silhouette_bce_loss(rendered.soft, rendered.target, rendered.valid, cfg.iou_threshold)
+    is_input = torch.cat(pairs.is_input)
     if not cfg.gate_input_view:
-        xent = xent._replace(gate=xent.gate | torch.cat(pairs.is_input))
+        xent = xent._replace(gate=xent.gate | is_input)
     weight = torch.cat(pairs.weight)
     dist_factor = cfg.dist_scale * cfg.dist_schedule(iteration)
     l3d = (l2d_loss(dist_factor * dist, xent) * weight).sum()
@@ -116,8 +120,11 @@ def multiview_silhouette_loss(
         "l_xent_reached": xent.loss_reached.mean(),
         "unreached": xent.unreached.mean(),
         "xent_gate": xent.gate.float().mean(),
+        "iou_input": xent.iou[is_input].mean(),
         "dist_factor": torch.tensor(dist_factor),
     }
+    if not is_input.all():
+        stats["iou_views"] = xent.iou[~is_input].mean()
     return SilhouetteLoss(l3d, dist_part, l3d - dist_part, stats)
 
 
@@ -127,7 +134,9 @@ def _gather_pairs(
     generator = torch.Generator(device=verts.device).manual_seed(sample.seed)
     surface = sample_points_from_meshes(Meshes.from_shared_topology(verts, faces), cfg.mesh_points, generator)
     input_pose = sample.views[0].cam_to_world
-    num_pairs = sum(int(view.present.sum()) for view in sample.views)
+    counts = [int(view.present.sum()) for view in sample.views]
+    # each image's pairs sum to 1 / batch_size; the input view's count input_view_weight times
+    total_weight = cfg.input_view_weight * counts[0] + sum(counts[1:])
     for position, view in enumerate(sample.views):
         present = torch.nonzero(view.present).squeeze(1)
         if len(present) == 0:
@@ -142,7 +151,8 @@ def _gather_pairs(
         pairs.masks.extend(masks.unbind(0))
         pairs.K.append(view.K.float().expand(len(present), 3, 3))
         pairs.sizes.append(torch.tensor(view.size, device=verts.device).expand(len(present), 2))
-        pairs.weight.append(torch.full((len(present),), 1.0 / (num_pairs * batch_size), device=verts.device))
+        view_weight = cfg.input_view_weight if position == 0 else 1.0
+        pairs.weight.append(torch.full((len(present),), view_weight / (total_weight * batch_size), device=verts.device))
         pairs.is_input.append(torch.full((len(present),), position == 0, device=verts.device))
         if cfg.ignore_occluders:
             pairs.occluders.extend((view.masks.any(dim=0) & ~masks).unbind(0))

@@ -68,7 +68,7 @@ class USLModel(nn.Module):
         )
         in_channels = shapes[cfg.layout.in_features[0]].channels
         self.layout_head = LayoutHead(in_channels, len(cfg.categories), cfg.layout, cfg.layout_range)
-        self.shape_head = ShapeHead(shapes, cfg.shape)
+        self.shape_head = ShapeHead(shapes, cfg.shape, len(cfg.categories))
         if cfg.init_weights and load_init_weights:
             print_report(init_detector(self.detector, cfg.init_weights, cfg.init_format))
         self.register_buffer("pixel_mean", torch.tensor(IMAGENET_MEAN).view(3, 1, 1), persistent=False)
@@ -103,7 +103,7 @@ class USLModel(nn.Module):
         boxes = [b.float() for b in boxes]
         flat_labels = torch.cat(labels).long()
         layout = self.layout_head(self.layout_pooler(features, boxes), flat_labels)
-        shape = self.shape_head(features, boxes)
+        shape = self.shape_head(features, boxes, flat_labels)
         counts = [len(b) for b in boxes]
         flat_K = torch.cat([k.float().expand(n, 3, 3) for k, n in zip(K, counts)])
         with _autocast_off(shape.verts):

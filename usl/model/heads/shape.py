@@ -9,6 +9,8 @@ enters the next stage's first GraphConv. As the paper states, V_0 (the unit sphe
 lie in [-1, 1]; V itself is not clamped (a clamp would stop the gradient of any vertex that
 touches the cube's faces), and the frustum map guards points beyond the far plane
 (``usl.geometry.frustum``). The pre-tanh offsets are kept for the ½‖dV‖² regularizer.
+``category_templates`` (an option, off in the paper's recipes) starts each object from its
+category's learned mean shape ``V_0 = sphere + T_c`` instead of the bare sphere.
 """
 from __future__ import annotations
 
@@ -76,9 +78,10 @@ class RefinementStage(nn.Module):
 
 
 class ShapeHead(nn.Module):
-    """``input_shape``: the backbone's maps by name; ``cfg.features`` picks and orders the sampled ones."""
+    """``input_shape``: the backbone's maps by name; ``cfg.features`` picks and orders the sampled ones.
+    ``num_classes`` sizes the per-category templates (``cfg.category_templates``)."""
 
-    def __init__(self, input_shape: Mapping[str, ShapeSpec], cfg: ShapeHeadConfig):
+    def __init__(self, input_shape: Mapping[str, ShapeSpec], cfg: ShapeHeadConfig, num_classes: int = 1):
         super().__init__()
         missing = [name for name in cfg.features if name not in input_shape]
         if missing:
@@ -87,6 +90,8 @@ class ShapeHead(nn.Module):
         self.strides = [input_shape[name].stride for name in cfg.features]
         verts, faces = ico_sphere(cfg.ico_level)
         self.register_buffer("sphere_verts", verts, persistent=False)
+        # zeros: every template starts as the sphere, so a fresh head is the paper's
+        self.templates = nn.Parameter(torch.zeros(num_classes, *verts.shape)) if cfg.category_templates else None
         self.register_buffer("faces", faces, persistent=False)
         self.register_buffer("edges", unique_edges(faces, verts.shape[0]), persistent=False)
         self.poolers = (
@@ -109,13 +114,18 @@ class ShapeHead(nn.Module):
             for index in range(cfg.num_stages)
         )
 
-    def forward(self, features: Mapping[str, Tensor], boxes: list[Tensor]) -> ShapePrediction:
-        """Deform one sphere per box; ``boxes`` is a list over images of (N_i, 4) input-pixel boxes."""
+    def forward(self, features: Mapping[str, Tensor], boxes: list[Tensor], labels: Tensor | None = None) -> ShapePrediction:
+        """Deform one sphere per box; ``boxes`` is a list over images of (N_i, 4) input-pixel boxes,
+        ``labels`` the (N,) flat category indices (needed with category templates)."""
         flat_boxes = torch.cat(boxes).float()
         image_index = torch.repeat_interleave(
             torch.arange(len(boxes), device=flat_boxes.device), torch.tensor([len(b) for b in boxes], device=flat_boxes.device)
         )
         verts = self.sphere_verts.expand(len(flat_boxes), -1, -1)
+        if self.templates is not None:
+            if labels is None:
+                raise ValueError("ShapeHead: model.shape.category_templates needs the objects' labels")
+            verts = verts + self.templates[labels.long()]
         maps = [features[name] for name in self.cfg.features]
         roi_features = None if self.poolers is None else [pooler(features, boxes) for pooler in self.poolers]
         stage_verts, offsets, previous = [], [], None

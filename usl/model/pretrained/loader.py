@@ -151,7 +151,7 @@ def _map_keys(
         if target not in model:
             raise WeightsError(
                 f"weights file {weights.path}: {key!r} maps to {target!r}, which this model does not have "
-                "(a deeper ResNet or another head than model.detector describes?)"
+                "(an FPN checkpoint on the plain resnet backbone, a deeper ResNet, or another head than model.detector describes?)"
             )
         if target in mapped:
             raise WeightsError(f"weights file {weights.path}: {key!r} and {mapped[target][0]!r} both map to {target!r}")
