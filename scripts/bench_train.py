@@ -35,9 +35,11 @@ from usl.engine.train_step import TrainStep  # noqa: E402
 from usl.geometry.cameras import intrinsics_from_fov  # noqa: E402
 from usl.records import RecordsDataset  # noqa: E402
 
-RECIPE_DATA = {"tiny": "scene_shapes", "scene_shapes": "scene_shapes", "hypersim": "hypersim", "scannet": "scannet"}
-DEFAULT_SIZE = {"tiny": (128, 128), "scene_shapes": (512, 512), "hypersim": (768, 1024), "scannet": (968, 1296)}
-DEFAULT_OBJECTS = {"tiny": 2, "scene_shapes": 2, "hypersim": 20, "scannet": 8}
+RECIPE_DATA = {"tiny": "scene_shapes", "scene_shapes": "scene_shapes", "scene_shapes_fpn": "scene_shapes",
+               "hypersim": "hypersim", "scannet": "scannet"}
+DEFAULT_SIZE = {"tiny": (128, 128), "scene_shapes": (512, 512), "scene_shapes_fpn": (512, 512),
+                "hypersim": (768, 1024), "scannet": (968, 1296)}
+DEFAULT_OBJECTS = {"tiny": 2, "scene_shapes": 2, "scene_shapes_fpn": 2, "hypersim": 20, "scannet": 8}
 
 
 def ellipse_masks(boxes: torch.Tensor, height: int, width: int) -> torch.Tensor:
@@ -124,23 +126,25 @@ def main() -> None:
         pool = [synthetic_sample(i, height, width, objects, cfg.data.num_views, len(cfg.model.categories))
                 for i in range(4 * batch_size)]
     batches = [pool[k * batch_size : (k + 1) * batch_size] for k in range(4)]
-    times = []
+    times, cpu_times = [], []  # wall clock; CPU time of this process (all its threads)
     for iteration in range(args.warmup + args.iters):
         batch = batches[iteration % len(batches)]
         if device.type == "cuda":
             torch.cuda.synchronize(device)
-        start = time.perf_counter()
+        start, cpu_start = time.perf_counter(), time.process_time()
         values = train_step(batch)
         if device.type == "cuda":
             torch.cuda.synchronize(device)
         if iteration >= args.warmup:
             times.append(time.perf_counter() - start)
+            cpu_times.append(time.process_time() - cpu_start)
     per_iter = statistics.median(times)
     images = batch_size
     print(f"config={args.config} device={device} batch={images} views={cfg.data.num_views} "
           f"stages={cfg.model.shape.num_stages} ico={cfg.model.shape.ico_level} render={cfg.loss.render.resolution} "
           f"amp={cfg.train.amp if device.type == 'cuda' else 'off'} data={'records' if args.data else 'synthetic'}")
     print(f"  seconds/iteration (median of {len(times)}): {per_iter:.3f}   min {min(times):.3f}  max {max(times):.3f}")
+    print(f"  CPU seconds/iteration (median, all threads; steady on a shared machine): {statistics.median(cpu_times):.3f}")
     print(f"  images/s: {images / per_iter:.2f}   last loss {values['loss']:.4f}")
     if device.type == "cuda":
         print(f"  peak GPU memory: {torch.cuda.max_memory_allocated(device) / 2**30:.2f} GiB")

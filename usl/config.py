@@ -16,7 +16,7 @@ import typing
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import Any, Mapping, Optional, Sequence
 
 import yaml
 
@@ -74,16 +74,25 @@ class LayoutHeadConfig:
 
 @dataclass
 class ShapeHeadConfig:
-    ico_level: int = 3  # subdivisions of the initial ico-sphere (3: 642 vertices)
+    ico_level: int = 3  # subdivisions of the initial ico-sphere (3: 642 vertices, 4: 2562)
     num_stages: int = 3  # refinement stages S, each {vertex features, graph convs, offsets}
     num_graph_convs: int = 3  # graph convolutions per stage
-    hidden_dim: int = 256  # width of the graph convolutions
-    feature: str = "p2"  # backbone map the vertex features come from
+    hidden_dim: int = 256  # width of the bottleneck and the graph convolutions
+    # Backbone maps sampled at each vertex's projection (each at its own stride) and concatenated:
+    # [p2] (the paper's FPN recipes) or [res2, res3, res4, res5] (Mesh R-CNN's ShapeNet model, R50)
+    features: tuple[str, ...] = ("p2",)
+    feature: Optional[str] = None  # deprecated: one map, forwarded to features (old configs and checkpoints)
+    # Mesh R-CNN: each stage's last GraphConv output is concatenated into the next stage's first
+    # GraphConv input (its width grows by hidden_dim); False: stages share only the vertex positions
+    pass_features: bool = False
     sampler: str = "roimap"  # "roimap" (paper) | "vertalign" (Mesh R-CNN, the ablation)
     vertalign_resolution: int = 14  # RoIAlign size of the VertAlign ablation
     # GraphConv weight init: "normal" N(0, 0.01²) (Mesh R-CNN) | "kaiming" (He init for the
     # neighbourhood sum): with "normal" three GraphConvs pass ~1% of the image features on
     graph_conv_init: str = "normal"
+    # Bottleneck Linear init: "torch" (PyTorch's default, uniform with std 1/sqrt(3 fan_in)) |
+    # "normal" (N(0, 0.01²), bias 0: Mesh R-CNN's)
+    bottleneck_init: str = "torch"
     # A learned template per category, added to the ico-sphere before the first stage: the
     # category mean shape of category-specific reconstruction (CMR, Kanazawa et al. 2018), so the
     # stages refine a table- or sofa-like mesh instead of growing it from a sphere. False: the
@@ -93,15 +102,27 @@ class ShapeHeadConfig:
     def __post_init__(self) -> None:
         _check_choice("model.shape.sampler", self.sampler, ("roimap", "vertalign"))
         _check_choice("model.shape.graph_conv_init", self.graph_conv_init, ("normal", "kaiming"))
+        _check_choice("model.shape.bottleneck_init", self.bottleneck_init, ("torch", "normal"))
         _check_positive("model.shape.num_stages", self.num_stages)
+        if self.feature is not None:  # the old single-map key, forwarded so old configs keep loading
+            if self.features not in (ShapeHeadConfig.features, (self.feature,)):
+                raise ConfigError(
+                    f"model.shape.feature={self.feature!r} and model.shape.features={list(self.features)} disagree: "
+                    "set model.shape.features only (model.shape.feature is deprecated)"
+                )
+            warnings.warn("model.shape.feature is deprecated: use model.shape.features (a list)", FutureWarning)
+            self.features, self.feature = (self.feature,), None
+        if not self.features or len(set(self.features)) != len(self.features):
+            raise ConfigError(f"model.shape.features: need distinct backbone map names, got {list(self.features)}")
 
 
-DETECTOR_PRESETS = {"default": DetectorConfig, "tiny": DetectorConfig.tiny}
+DETECTOR_PRESETS = {"default": DetectorConfig, "r50": DetectorConfig.r50, "tiny": DetectorConfig.tiny}
 
 
 @dataclass
 class ModelConfig:
-    # Defaults the ``detector`` section starts from: "default" (Mask R-CNN R50-FPN) or "tiny"
+    # Defaults the ``detector`` section starts from: "default" (Mask R-CNN R50-FPN), "r50" (a plain
+    # R50 exposing res2..res5, RPN and RoI heads on res4: ``DetectorConfig.r50()``) or "tiny"
     # (``DetectorConfig.tiny()``, for CPU runs); the recipe's ``detector`` keys apply on top.
     detector_preset: str = "default"
     detector: DetectorConfig = field(default_factory=DetectorConfig)

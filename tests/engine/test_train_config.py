@@ -34,14 +34,42 @@ def test_recipes_follow_the_papers_recipe_table():
     assert scannet.loss.weights.laplacian == 0.1 and scannet.loss.weights.offset_l2 == 0.05
     assert scannet.data.view_sampling == "time_distance" and scannet.optim.name == "sgd"  # inherited
     for cfg in (shapes, hypersim, scannet):
-        assert cfg.model.shape.ico_level == 3 and cfg.model.shape.sampler == "roimap"
-        assert cfg.model.detector.backbone.resnet.depth == 50
+        assert cfg.model.shape.sampler == "roimap" and cfg.model.detector.backbone.resnet.depth == 50
+    for cfg in (hypersim, scannet):  # the paper's Appendix tables: R50-FPN p2, ico3, 256-d, no passing
+        assert cfg.model.detector.backbone.name == "resnet_fpn" and cfg.model.shape.features == ("p2",)
+        assert cfg.model.shape.ico_level == 3 and cfg.model.shape.hidden_dim == 256 and not cfg.model.shape.pass_features
+    # Scene-Shapes: Mesh R-CNN's ShapeNet sphere-init model (meshrcnn configs/shapenet/sphereinit_R50.yaml)
+    assert shapes.model.detector.backbone.name == "resnet" and shapes.model.shape.features == ("res2", "res3", "res4", "res5")
+    assert (shapes.model.shape.ico_level, shapes.model.shape.hidden_dim, shapes.model.shape.num_graph_convs) == (4, 128, 3)
+    assert shapes.model.shape.pass_features and shapes.model.shape.bottleneck_init == "normal"
+    assert shapes.model.detector.backbone.resnet.norm == "BN" and shapes.model.detector.backbone.resnet.freeze_at == 0
+
+
+def test_scene_shapes_fpn_is_the_same_recipe_on_the_hypersim_architecture():
+    shapes, fpn, hypersim = (load_config(n) for n in ("scene_shapes", "scene_shapes_fpn", "hypersim"))
+    assert to_dict(fpn.model.detector) == to_dict(DetectorConfig()) == to_dict(hypersim.model.detector)
+    assert fpn.model.shape == hypersim.model.shape and fpn.model.layout == hypersim.model.layout
+    for section in ("data", "loss", "optim", "train"):
+        assert getattr(fpn, section) == getattr(shapes, section), section
 
 
 def test_tiny_recipe_uses_the_detectors_tiny_network():
     tiny = load_config("tiny")
     assert to_dict(tiny.model.detector) == to_dict(DetectorConfig.tiny())
     assert tiny.model.shape.ico_level == 2 and tiny.optim.name == "adam"
+    # the FPN shape head of its base (scene_shapes_fpn), not Scene-Shapes' Mesh R-CNN head
+    assert tiny.model.shape.features == ("p2",) and not tiny.model.shape.pass_features
+    assert tiny.model.shape.bottleneck_init == "torch" and tiny.model.layout.in_features == ("p2",)
+
+
+def test_the_old_single_feature_key_still_loads_and_conflicts_are_errors():
+    with pytest.warns(FutureWarning, match="model.shape.feature is deprecated"):
+        old = config_from_dict({"model": {"shape": {"feature": "p3"}}})  # a config saved before `features`
+    assert old.model.shape.features == ("p3",) and old.model.shape.feature is None
+    with pytest.raises(ConfigError, match="disagree: set model.shape.features only"):
+        config_from_dict({"model": {"shape": {"feature": "p3", "features": ["p2", "p4"]}}})
+    with pytest.raises(ConfigError, match="need distinct backbone map names"):
+        load_config("hypersim", ["model.shape.features=[p2, p2]"])
 
 
 def test_overrides_are_typed_and_nested():

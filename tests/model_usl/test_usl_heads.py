@@ -7,6 +7,7 @@ from usl.config import LayoutHeadConfig, LayoutRange, ShapeHeadConfig
 from usl.geometry import cube_to_frustum, ico_sphere, unique_edges
 from usl.geometry.cameras import project
 from usl.model.heads import GraphConv, LayoutHead, ShapeHead, project_cube_to_image, roimap_features, vertalign_features
+from usl.model.backbone import ShapeSpec
 from usl.model.heads.vertex_features import single_level_pooler
 
 RANGE = LayoutRange(z0=1.0, z1=5.0, rho0=0.2, rho1=2.0)
@@ -90,7 +91,7 @@ def test_roimap_samples_the_backbone_map_at_vertex_projections():
     boxes = torch.tensor([[10.0, 8.0, 50.0, 40.0], [30.0, 20.0, 70.0, 56.0], [12.0, 12.0, 20.0, 30.0]])
     image_index = torch.tensor([0, 1, 1])
     verts = torch.rand(3, 30, 3) * 2 - 1
-    feats = roimap_features(fmap, stride, verts, boxes, image_index)
+    feats = roimap_features([fmap], [stride], verts, boxes, image_index)
     uv = project_cube_to_image(verts, boxes)
     # bilinear interpolation reproduces a linear field exactly between cell centres
     assert torch.allclose(feats[..., :2], uv, atol=1e-4)
@@ -105,7 +106,7 @@ def test_vertalign_agrees_with_roimap_inside_the_roi():
     inner = 1 - 1 / resolution  # beyond the outer bin centres grid_sample blends with zero padding
     verts = (torch.rand(1, 40, 3) * 2 - 1) * inner
     via_roi = vertalign_features(pooled, verts)
-    direct = roimap_features(fmap, stride, verts, boxes, torch.tensor([0]))
+    direct = roimap_features([fmap], [stride], verts, boxes, torch.tensor([0]))
     assert torch.allclose(via_roi, direct, atol=1e-3)
 
 
@@ -113,7 +114,7 @@ def test_vertalign_agrees_with_roimap_inside_the_roi():
 def test_shape_head_shapes_init_and_gradients(sampler):
     torch.manual_seed(0)
     cfg = ShapeHeadConfig(ico_level=1, num_stages=2, hidden_dim=16, sampler=sampler, vertalign_resolution=7)
-    head = ShapeHead(8, 4, cfg)
+    head = ShapeHead({"p2": ShapeSpec(8, 4)}, cfg)
     fmap = torch.randn(2, 8, 16, 16, requires_grad=True)
     boxes = [torch.tensor([[4.0, 4.0, 40.0, 30.0]]), torch.tensor([[10.0, 10.0, 60.0, 60.0], [0.0, 0.0, 20.0, 20.0]])]
     out = head({"p2": fmap}, boxes)
@@ -136,8 +137,8 @@ def test_shape_head_shapes_init_and_gradients(sampler):
 def test_category_templates_start_as_the_sphere_and_learn_per_category():
     torch.manual_seed(0)
     cfg = ShapeHeadConfig(ico_level=1, num_stages=2, hidden_dim=16, category_templates=True)
-    head = ShapeHead(8, 4, cfg, num_classes=3)
-    plain = ShapeHead(8, 4, ShapeHeadConfig(ico_level=1, num_stages=2, hidden_dim=16))
+    head = ShapeHead({"p2": ShapeSpec(8, 4)}, cfg, num_classes=3)
+    plain = ShapeHead({"p2": ShapeSpec(8, 4)}, ShapeHeadConfig(ico_level=1, num_stages=2, hidden_dim=16))
     plain.load_state_dict({k: v for k, v in head.state_dict().items() if k != "templates"})
     fmap = torch.randn(1, 8, 16, 16)
     boxes = [torch.tensor([[4.0, 4.0, 40.0, 30.0], [10.0, 10.0, 60.0, 60.0]])]

@@ -54,9 +54,9 @@ class USLModel(nn.Module):
         self.loss_cfg = loss_cfg or LossConfig()
         self.detector = MaskRCNN(len(cfg.categories), cfg.detector)
         shapes = self.detector.backbone.output_shape()
-        for name in (*cfg.layout.in_features, cfg.shape.feature):
+        for name in cfg.layout.in_features:
             if name not in shapes:
-                raise ValueError(f"backbone has no feature {name!r}; it has {sorted(shapes)}")
+                raise ValueError(f"model.layout.in_features: backbone has no feature {name!r}; it has {sorted(shapes)}")
         roi_cfg = cfg.detector.roi_heads
         self.layout_pooler = MultiScaleRoIAlign(
             cfg.layout.in_features,
@@ -68,8 +68,7 @@ class USLModel(nn.Module):
         )
         in_channels = shapes[cfg.layout.in_features[0]].channels
         self.layout_head = LayoutHead(in_channels, len(cfg.categories), cfg.layout, cfg.layout_range)
-        feature = shapes[cfg.shape.feature]
-        self.shape_head = ShapeHead(feature.channels, feature.stride, cfg.shape, len(cfg.categories))
+        self.shape_head = ShapeHead(shapes, cfg.shape, len(cfg.categories))
         if cfg.init_weights and load_init_weights:
             print_report(init_detector(self.detector, cfg.init_weights, cfg.init_format))
         self.register_buffer("pixel_mean", torch.tensor(IMAGENET_MEAN).view(3, 1, 1), persistent=False)

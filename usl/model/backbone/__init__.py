@@ -1,5 +1,15 @@
 """Backbones: torchvision-compatible ResNets and a Feature Pyramid Network."""
-from .build import BackboneConfig, FPNConfig, ResNetConfig, ResNetFPN, ShapeSpec, build_backbone, build_resnet_fpn
+from .build import (
+    BackboneConfig,
+    FPNConfig,
+    ResNetBackbone,
+    ResNetConfig,
+    ResNetFPN,
+    ShapeSpec,
+    build_backbone,
+    build_resnet,
+    build_resnet_fpn,
+)
 from .fpn import FPN
 from .norm import FrozenBatchNorm2d, freeze_batch_norms
 from .registry import BACKBONES, Registry
@@ -15,10 +25,12 @@ __all__ = [
     "IMAGENET_STD",
     "Registry",
     "ResNet",
+    "ResNetBackbone",
     "ResNetConfig",
     "ResNetFPN",
     "ShapeSpec",
     "build_backbone",
+    "build_resnet",
     "build_resnet_fpn",
     "freeze_batch_norms",
 ]

@@ -1,4 +1,4 @@
-"""Backbone configuration, the ResNet-FPN backbone, and the registry-based builder."""
+"""Backbone configuration, the plain ResNet and ResNet-FPN backbones, and the registry-based builder."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -42,7 +42,7 @@ class FPNConfig:
 
 @dataclass
 class BackboneConfig:
-    name: str = "resnet_fpn"
+    name: str = "resnet_fpn"  # key in BACKBONES: "resnet_fpn" (p2..p6) | "resnet" (plain, res2..res5)
     resnet: ResNetConfig = field(default_factory=ResNetConfig)
     fpn: FPNConfig = field(default_factory=FPNConfig)
 
@@ -52,15 +52,40 @@ class BackboneConfig:
         return cls(resnet=ResNetConfig(depth=18, base_channels=16, norm="BN", freeze_at=0), fpn=FPNConfig(32))
 
 
-class ResNetFPN(nn.Module):
-    """``bottom_up`` ResNet (torchvision names) + ``fpn``; ``forward(images) -> {"p2": ..., "p6": ...}``."""
+class ResNetBackbone(nn.Module):
+    """A plain ``bottom_up`` ResNet (torchvision names): ``forward(images) -> {"res2": ..., "res5": ...}``.
 
-    def __init__(self, bottom_up: ResNet, fpn: FPN):
+    The stage outputs conv2_3 .. conv5_3 of a ResNet-50 (strides 4 .. 32, 256 .. 2048 channels), as
+    Mesh R-CNN's ShapeNet model samples them; detectron2 names them res2 .. res5.
+    """
+
+    def __init__(self, bottom_up: ResNet):
         super().__init__()
         self.bottom_up = bottom_up
+        self.bottom_up.fc.requires_grad_(False)  # kept for strict loading, never used
+
+    def forward(self, images: Tensor) -> dict[str, Tensor]:
+        return {_plain_name(name): x for name, x in self.bottom_up.features(images).items()}
+
+    def output_shape(self) -> dict[str, ShapeSpec]:
+        channels = self.bottom_up.stage_channels
+        return {_plain_name(name): ShapeSpec(channels[name], stride) for name, stride in STAGE_OUTPUTS.items()}
+
+    @property
+    def size_divisibility(self) -> int:
+        """Inputs padded to a multiple of the deepest stride keep res2..res5 exactly aligned."""
+        return max(STAGE_OUTPUTS.values())
+
+
+class ResNetFPN(ResNetBackbone):
+    """``bottom_up`` ResNet (torchvision names) + ``fpn``; ``forward(images) -> {"p2": ..., "p6": ...}``.
+
+    ``size_divisibility`` is the plain ResNet's (P6, a stride-2 max-pool of P5, simply rounds up).
+    """
+
+    def __init__(self, bottom_up: ResNet, fpn: FPN):
+        super().__init__(bottom_up)
         self.fpn = fpn
-        # Detection never uses the classifier; keep it (for strict loading) but out of training.
-        self.bottom_up.fc.requires_grad_(False)
 
     def forward(self, images: Tensor) -> dict[str, Tensor]:
         return self.fpn(self.bottom_up.features(images))
@@ -68,17 +93,13 @@ class ResNetFPN(nn.Module):
     def output_shape(self) -> dict[str, ShapeSpec]:
         return {name: ShapeSpec(self.fpn.out_channels, stride) for name, stride in self.fpn.out_strides.items()}
 
-    @property
-    def size_divisibility(self) -> int:
-        """Inputs padded to a multiple of the deepest ResNet stride keep C2..C5 exactly aligned.
 
-        (P6, a stride-2 max-pool of P5, simply rounds up.)
-        """
-        return max(STAGE_OUTPUTS.values())
+def _plain_name(stage: str) -> str:
+    """``c2`` (the ResNet's and the FPN's input name) -> ``res2`` (a plain backbone's output)."""
+    return "res" + stage[1:]
 
 
-@BACKBONES.register("resnet_fpn")
-def build_resnet_fpn(cfg: BackboneConfig) -> ResNetFPN:
+def _build_resnet(cfg: BackboneConfig) -> ResNet:
     if cfg.resnet.weights:
         raise ValueError(
             f"backbone.resnet.weights={cfg.resnet.weights!r} no longer loads here: initialise the whole model "
@@ -88,6 +109,18 @@ def build_resnet_fpn(cfg: BackboneConfig) -> ResNetFPN:
         cfg.resnet.depth, cfg.resnet.base_channels, cfg.resnet.norm, stride_in_1x1=bool(cfg.resnet.stride_in_1x1)
     )
     resnet.freeze(cfg.resnet.freeze_at)
+    return resnet
+
+
+@BACKBONES.register("resnet")
+def build_resnet(cfg: BackboneConfig) -> ResNetBackbone:
+    """The plain ResNet: every stage output, no FPN (``cfg.fpn`` is unused)."""
+    return ResNetBackbone(_build_resnet(cfg))
+
+
+@BACKBONES.register("resnet_fpn")
+def build_resnet_fpn(cfg: BackboneConfig) -> ResNetFPN:
+    resnet = _build_resnet(cfg)
     fpn = FPN(resnet.stage_channels, STAGE_OUTPUTS, cfg.fpn.out_channels, cfg.fpn.add_p6)
     return ResNetFPN(resnet, fpn)
 

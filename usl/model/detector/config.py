@@ -1,9 +1,9 @@
-"""Detector configuration as nested dataclasses (defaults: Mask R-CNN R50-FPN, detectron2 recipe)."""
+"""Detector configuration as nested dataclasses (defaults: Mask R-CNN R50-FPN, detectron2 recipe; a plain-R50 preset)."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from ..backbone import BackboneConfig
+from ..backbone import BackboneConfig, ResNetConfig
 
 
 @dataclass
@@ -75,6 +75,30 @@ class DetectorConfig:
     backbone: BackboneConfig = field(default_factory=BackboneConfig)
     rpn: RPNConfig = field(default_factory=RPNConfig)
     roi_heads: ROIHeadsConfig = field(default_factory=ROIHeadsConfig)
+
+    @classmethod
+    def r50(cls) -> "DetectorConfig":
+        """A plain ResNet-50 (no FPN) as Mesh R-CNN's ShapeNet model trains it, under a C4 detector.
+
+        The backbone exposes res2..res5 for the shape head and, like that model's torchvision
+        ResNet, keeps BatchNorm with batch statistics and freezes nothing. The RPN runs on res4 with
+        all five anchor sizes at its stride 16 and the RoI heads pool res4, with the RPN top-k of
+        detectron2's ``Base-RCNN-C4``. One deviation from R50-C4: the box and mask heads are this
+        package's FPN-style heads (2 x FC 1024, 4 x conv 256) on the pooled res4 features, not
+        detectron2's res5 RoI head (a second copy of the last stage, run per RoI).
+        """
+        return cls(
+            backbone=BackboneConfig(name="resnet", resnet=ResNetConfig(norm="BN", freeze_at=0)),
+            rpn=RPNConfig(
+                in_features=("res4",),
+                anchors=AnchorConfig(sizes=((32, 64, 128, 256, 512),)),
+                pre_nms_topk_train=12000,
+                pre_nms_topk_test=6000,
+                post_nms_topk_train=2000,
+                post_nms_topk_test=1000,
+            ),
+            roi_heads=ROIHeadsConfig(in_features=("res4",)),
+        )
 
     @classmethod
     def tiny(cls) -> "DetectorConfig":

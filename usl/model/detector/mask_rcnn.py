@@ -22,8 +22,8 @@ class InvalidTargetError(ValueError):
 class MaskRCNN(nn.Module):
     """Mask R-CNN detector for ``num_classes`` categories (labels ``0 .. num_classes - 1``).
 
-    Parts are public so later heads can reuse them: ``backbone(images)`` gives the FPN
-    feature dict, ``proposal_generator`` the RPN, ``roi_heads.box_pooler(features, boxes)``
+    Parts are public so later heads can reuse them: ``backbone(images)`` gives the feature
+    dict (FPN ``p2..p6``, or a plain ResNet's ``res2..res5``), ``proposal_generator`` the RPN, ``roi_heads.box_pooler(features, boxes)``
     pooled RoI features.
     """
 
@@ -39,7 +39,7 @@ class MaskRCNN(nn.Module):
         self.roi_heads = build_roi_heads(self.cfg.roi_heads, num_classes, shapes)
 
     def preprocess(self, images: Tensor, image_sizes: Optional[Sequence[tuple[int, int]]] = None) -> ImageList:
-        """Pad normalised images (N, 3, H, W) so every FPN level aligns."""
+        """Pad normalised images (N, 3, H, W) so every feature map aligns."""
         return ImageList.from_tensor(images, image_sizes, self.backbone.size_divisibility)
 
     def forward(

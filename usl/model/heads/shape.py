@@ -1,11 +1,13 @@
 """Shape head (paper Sec. 3.3): an identical ico-sphere per object, deformed in the normalized cube.
 
-Each of S refinement stages samples a feature per vertex (RoIMap, or RoIAlign + VertAlign for
-the ablation), projects it to ``hidden_dim`` (Mesh R-CNN's bottleneck), runs ``num_graph_convs``
-GraphConvs on [features, positions] and predicts offsets with a Linear on [features, positions]:
-``dV_i = tanh(offset)``, ``V_i = V_{i-1} + dV_i``. As the paper states, V_0 (the unit sphere) and
-each dV_i lie in [-1, 1]; V itself is not clamped (a clamp would stop the gradient of any vertex
-that touches the cube's faces), and the frustum map guards points beyond the far plane
+Each of S refinement stages samples a feature per vertex from one or more backbone maps,
+concatenated (RoIMap, or RoIAlign + VertAlign for the ablation), projects it to ``hidden_dim``
+(Mesh R-CNN's bottleneck), runs ``num_graph_convs`` GraphConvs on [features, positions] and
+predicts offsets with a Linear on [features, positions]: ``dV_i = tanh(offset)``,
+``V_i = V_{i-1} + dV_i``. With ``pass_features`` (Mesh R-CNN) a stage's last GraphConv output also
+enters the next stage's first GraphConv. As the paper states, V_0 (the unit sphere) and each dV_i
+lie in [-1, 1]; V itself is not clamped (a clamp would stop the gradient of any vertex that
+touches the cube's faces), and the frustum map guards points beyond the far plane
 (``usl.geometry.frustum``). The pre-tanh offsets are kept for the ½‖dV‖² regularizer.
 ``category_templates`` (an option, off in the paper's recipes) starts each object from its
 category's learned mean shape ``V_0 = sphere + T_c`` instead of the bare sphere.
@@ -13,13 +15,14 @@ category's learned mean shape ``V_0 = sphere + T_c`` instead of the bare sphere.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Mapping
+from typing import Mapping, Optional
 
 import torch
 from torch import nn
 
 from usl.config import ShapeHeadConfig
 from usl.geometry import ico_sphere, unique_edges
+from usl.model.backbone import ShapeSpec
 
 from .graph_conv import GraphConv
 from .vertex_features import roimap_features, single_level_pooler, vertalign_features
@@ -35,48 +38,80 @@ class ShapePrediction:
 
 
 class RefinementStage(nn.Module):
-    """One {vertex features, GraphConvs, offsets} stage."""
+    """One {vertex features, GraphConvs, offsets} stage.
 
-    def __init__(self, feature_dim: int, hidden_dim: int, num_graph_convs: int, graph_conv_init: str = "normal"):
+    ``previous_dim``: width of the previous stage's vertex features this stage receives (0: none);
+    they join the first GraphConv's input, as in Mesh R-CNN's refinement stages.
+    """
+
+    def __init__(
+        self,
+        feature_dim: int,
+        hidden_dim: int,
+        num_graph_convs: int,
+        graph_conv_init: str = "normal",
+        previous_dim: int = 0,
+        bottleneck_init: str = "torch",
+    ):
         super().__init__()
         self.bottleneck = nn.Linear(feature_dim, hidden_dim)
-        self.gconvs = nn.ModuleList(
-            GraphConv(hidden_dim + 3, hidden_dim, graph_conv_init) for _ in range(num_graph_convs)
-        )
+        if bottleneck_init == "normal":  # Mesh R-CNN's; "torch" keeps nn.Linear's default
+            nn.init.normal_(self.bottleneck.weight, std=0.01)
+            nn.init.zeros_(self.bottleneck.bias)
+        widths = [hidden_dim + previous_dim] + [hidden_dim] * (num_graph_convs - 1)
+        self.gconvs = nn.ModuleList(GraphConv(width + 3, hidden_dim, graph_conv_init) for width in widths)
         self.offset = nn.Linear(hidden_dim + 3, 3)
         nn.init.zeros_(self.offset.weight)  # start from the sphere (Mesh R-CNN's init)
         nn.init.zeros_(self.offset.bias)
 
-    def forward(self, verts: Tensor, vertex_features: Tensor, edges: Tensor) -> Tensor:
-        """Pre-tanh offsets (N, V, 3)."""
+    def forward(
+        self, verts: Tensor, vertex_features: Tensor, edges: Tensor, previous: Optional[Tensor] = None
+    ) -> tuple[Tensor, Tensor]:
+        """Pre-tanh offsets (N, V, 3) and the last GraphConv's features (N, V, hidden_dim)."""
         positions = verts.to(vertex_features.dtype)
         x = torch.relu(self.bottleneck(vertex_features))
+        if previous is not None:
+            x = torch.cat([x, previous.to(x.dtype)], dim=-1)
         for gconv in self.gconvs:
             x = torch.relu(gconv(torch.cat([x, positions], dim=-1), edges))
-        return self.offset(torch.cat([x, positions], dim=-1))
+        return self.offset(torch.cat([x, positions], dim=-1)), x
 
 
 class ShapeHead(nn.Module):
-    """``num_classes`` sizes the per-category templates (``cfg.category_templates``)."""
+    """``input_shape``: the backbone's maps by name; ``cfg.features`` picks and orders the sampled ones.
+    ``num_classes`` sizes the per-category templates (``cfg.category_templates``)."""
 
-    def __init__(self, feature_channels: int, feature_stride: int, cfg: ShapeHeadConfig, num_classes: int = 1):
+    def __init__(self, input_shape: Mapping[str, ShapeSpec], cfg: ShapeHeadConfig, num_classes: int = 1):
         super().__init__()
+        missing = [name for name in cfg.features if name not in input_shape]
+        if missing:
+            raise ValueError(f"model.shape.features: backbone has no map {missing}; it has {sorted(input_shape)}")
         self.cfg = cfg
-        self.stride = feature_stride
+        self.strides = [input_shape[name].stride for name in cfg.features]
         verts, faces = ico_sphere(cfg.ico_level)
         self.register_buffer("sphere_verts", verts, persistent=False)
         # zeros: every template starts as the sphere, so a fresh head is the paper's
         self.templates = nn.Parameter(torch.zeros(num_classes, *verts.shape)) if cfg.category_templates else None
         self.register_buffer("faces", faces, persistent=False)
         self.register_buffer("edges", unique_edges(faces, verts.shape[0]), persistent=False)
-        self.pooler = (
-            single_level_pooler(cfg.feature, feature_stride, cfg.vertalign_resolution)
+        self.poolers = (
+            nn.ModuleList(
+                single_level_pooler(name, stride, cfg.vertalign_resolution) for name, stride in zip(cfg.features, self.strides)
+            )
             if cfg.sampler == "vertalign"
             else None
         )
+        feature_dim = sum(input_shape[name].channels for name in cfg.features)
         self.stages = nn.ModuleList(
-            RefinementStage(feature_channels, cfg.hidden_dim, cfg.num_graph_convs, cfg.graph_conv_init)
-            for _ in range(cfg.num_stages)
+            RefinementStage(
+                feature_dim,
+                cfg.hidden_dim,
+                cfg.num_graph_convs,
+                cfg.graph_conv_init,
+                previous_dim=cfg.hidden_dim if cfg.pass_features and index > 0 else 0,
+                bottleneck_init=cfg.bottleneck_init,
+            )
+            for index in range(cfg.num_stages)
         )
 
     def forward(self, features: Mapping[str, Tensor], boxes: list[Tensor], labels: Tensor | None = None) -> ShapePrediction:
@@ -91,14 +126,17 @@ class ShapeHead(nn.Module):
             if labels is None:
                 raise ValueError("ShapeHead: model.shape.category_templates needs the objects' labels")
             verts = verts + self.templates[labels.long()]
-        roi_features = self.pooler(features, boxes) if self.pooler is not None else None
-        stage_verts, offsets = [], []
+        maps = [features[name] for name in self.cfg.features]
+        roi_features = None if self.poolers is None else [pooler(features, boxes) for pooler in self.poolers]
+        stage_verts, offsets, previous = [], [], None
         for stage in self.stages:
             if roi_features is None:
-                vertex_features = roimap_features(features[self.cfg.feature], self.stride, verts, flat_boxes, image_index)
+                vertex_features = roimap_features(maps, self.strides, verts, flat_boxes, image_index)
             else:
-                vertex_features = vertalign_features(roi_features, verts)
-            offset = stage(verts, vertex_features, self.edges).float()
+                vertex_features = torch.cat([vertalign_features(pooled, verts) for pooled in roi_features], dim=-1)
+            offset, stage_features = stage(verts, vertex_features, self.edges, previous)
+            offset = offset.float()
+            previous = stage_features if self.cfg.pass_features else None
             verts = verts + torch.tanh(offset)
             stage_verts.append(verts)
             offsets.append(offset)

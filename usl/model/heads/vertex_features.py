@@ -7,6 +7,8 @@ projection of the current mesh onto the input image needs only the boxes.
 """
 from __future__ import annotations
 
+from typing import Sequence
+
 import torch
 import torch.nn.functional as F
 
@@ -23,30 +25,46 @@ def project_cube_to_image(verts_cube: Tensor, boxes: Tensor) -> Tensor:
 
 
 def roimap_features(
-    feature_map: Tensor, stride: int, verts_cube: Tensor, boxes: Tensor, image_index: Tensor
+    feature_maps: Sequence[Tensor], strides: Sequence[int], verts_cube: Tensor, boxes: Tensor, image_index: Tensor
 ) -> Tensor:
-    """RoIMap: bilinear samples straight from the backbone map at each vertex's projection.
+    """RoIMap: bilinear samples straight from backbone maps at each vertex's projection, concatenated.
 
     Args:
-        feature_map: (B, C, Hf, Wf) map of the padded image batch with the given ``stride``.
+        feature_maps: (B, C_k, H_k, W_k) maps of the padded image batch, map k with stride ``strides[k]``
+            (one map for the FPN recipes; res2..res5 for Mesh R-CNN's ShapeNet model).
         verts_cube: (N, V, 3); boxes: (N, 4) in input pixels; image_index: (N,) image of each object.
     Returns:
-        (N, V, C). Vertices projecting outside the image get zeros (``padding_mode="zeros"``).
-    The map spans [0, Wf * stride] x [0, Hf * stride] pixels with cell centres at (i + 0.5) * stride,
-    which is ``grid_sample(align_corners=False)``'s convention for normalised coordinates.
+        (N, V, sum C_k), the maps' channels in order. Vertices projecting outside the image get
+        zeros (``padding_mode="zeros"``).
+    Map k spans [0, W_k * stride_k] x [0, H_k * stride_k] pixels with cell centres at
+    (i + 0.5) * stride_k, which is ``grid_sample(align_corners=False)``'s convention for normalised
+    coordinates; each map is sampled at its own stride, so one projection serves all of them.
     """
+    if len(feature_maps) != len(strides) or not feature_maps:
+        raise ValueError(f"roimap_features: {len(feature_maps)} feature maps for {len(strides)} strides")
     num_objects, num_verts = verts_cube.shape[:2]
-    channels, height, width = feature_map.shape[1:]
-    out = feature_map.new_zeros(num_objects, num_verts, channels, dtype=torch.float32)
+    if num_objects == 0:
+        return feature_maps[0].new_zeros(0, num_verts, sum(m.shape[1] for m in feature_maps), dtype=torch.float32)
     uv = project_cube_to_image(verts_cube.float(), boxes.float())
-    extent = torch.tensor([width * stride, height * stride], dtype=uv.dtype, device=uv.device)
-    grid = 2.0 * uv / extent - 1.0  # float32 even under autocast: bf16 would misplace samples by cells
-    for image in torch.unique(image_index).tolist():
-        rows = torch.nonzero(image_index == image).squeeze(1)
-        points = grid[rows].reshape(1, 1, -1, 2)  # all vertices of this image's objects at once
-        sampled = F.grid_sample(feature_map[image : image + 1].float(), points, align_corners=False)
-        out[rows] = sampled.reshape(channels, len(rows), num_verts).permute(1, 2, 0)
-    return out
+    # Objects grouped by image (they usually are already): each image's vertices are one block of
+    # grid points, and the blocks' samples are joined, not scattered into a preallocated output.
+    order = torch.argsort(image_index, stable=True)
+    grouped = bool(torch.equal(order, torch.arange(num_objects, device=order.device)))
+    images, counts = torch.unique_consecutive(image_index[order], return_counts=True)
+    blocks = list(zip(images.tolist(), (uv if grouped else uv[order]).split(counts.tolist())))
+    per_map = []
+    for feature_map, stride in zip(feature_maps, strides):
+        height, width = feature_map.shape[-2:]
+        extent = torch.tensor([width * stride, height * stride], dtype=uv.dtype, device=uv.device)
+        samples = [
+            # float32 even under autocast: bf16 would misplace samples by cells
+            F.grid_sample(feature_map[image : image + 1].float(), (2.0 * block / extent - 1.0).reshape(1, 1, -1, 2),
+                          align_corners=False)[0, :, 0]
+            for image, block in blocks
+        ]
+        per_map.append(samples[0] if len(samples) == 1 else torch.cat(samples, dim=1))  # (C_k, N * V)
+    out = torch.cat(per_map, dim=0).reshape(-1, num_objects, num_verts).permute(1, 2, 0)
+    return out if grouped else out[torch.argsort(order)]
 
 
 def vertalign_features(roi_features: Tensor, verts_cube: Tensor) -> Tensor:

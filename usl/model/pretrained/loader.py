@@ -126,7 +126,7 @@ def _detect_layout(weights: WeightsFile) -> Layout:
 def _check_resnet_variant(detector: nn.Module, layout: Layout, path: Path) -> None:
     resnet = getattr(getattr(detector, "backbone", None), "bottom_up", None)
     if resnet is None or not hasattr(resnet, "stride_in_1x1"):
-        raise WeightsError(f"weights file {path}: init_weights needs the resnet_fpn backbone")
+        raise WeightsError(f"weights file {path}: init_weights needs a ResNet backbone (resnet or resnet_fpn)")
     if resnet.depth >= 50 and resnet.stride_in_1x1 != layout.stride_in_1x1:
         where = "first 1x1 conv (MSRA ResNet)" if layout.stride_in_1x1 else "3x3 conv (ResNet v1.5)"
         raise WeightsError(
@@ -151,7 +151,7 @@ def _map_keys(
         if target not in model:
             raise WeightsError(
                 f"weights file {weights.path}: {key!r} maps to {target!r}, which this model does not have "
-                "(a deeper ResNet or another head than model.detector describes?)"
+                "(an FPN checkpoint on the plain resnet backbone, a deeper ResNet, or another head than model.detector describes?)"
             )
         if target in mapped:
             raise WeightsError(f"weights file {weights.path}: {key!r} and {mapped[target][0]!r} both map to {target!r}")
