@@ -141,6 +141,18 @@ class RenderConfig:
 
 
 @dataclass
+class Mesh3DLossConfig:
+    """Mesh R-CNN's 3D mesh losses (``loss.supervision=3d``). Defaults: its ShapeNet config
+    (meshrcnn ``configs/shapenet``: CHAMFER_LOSS_WEIGHT 1.0, NORMALS_LOSS_WEIGHT 0.0, EDGE_LOSS_WEIGHT 0.2,
+    GT_NUM_SAMPLES = PRED_NUM_SAMPLES = 5000)."""
+
+    chamfer: float = 1.0  # Chamfer-L2 between points on the predicted and the true mesh (m^2)
+    normals: float = 0.0  # 1 - |cos| between the normals of nearest point pairs, both ways
+    edge: float = 0.2  # squared edge length of the predicted mesh in the camera frame (m^2)
+    num_samples: int = 5000  # points sampled on each predicted and each true mesh
+
+
+@dataclass
 class LossConfig:
     weights: LossWeights = field(default_factory=LossWeights)
     render: RenderConfig = field(default_factory=RenderConfig)
@@ -155,7 +167,14 @@ class LossConfig:
     dist_schedule: PiecewiseLinear = field(default_factory=PiecewiseLinear)
     mesh_points: int = 1000  # points sampled on each mesh surface for l_dist
     mask_points: int = 1000  # points sampled in each true silhouette for l_dist
-    iou_threshold: float = 0.5  # l_xent applies only above this IoU (paper Eq. 4)
+    # The IoU gate of Eq. 4, the key Table 1's ablations vary: with loss.xent_gate=iou, l_xent applies
+    # to an (object, view) pair only when IoU(rendered > 0.5, true) exceeds this (paper: 0.5).
+    iou_threshold: float = 0.5
+    # Which pairs l_xent applies to. "iou": the gate above (paper Eq. 4), "all": every pair. "auto":
+    # "iou" while l_dist is on, "all" when loss.weights.dist (or dist_scale) is 0. The gate hands non-overlapping
+    # pairs to l_dist; without l_dist nothing else supervises them, the layout (z, rho) then gets no
+    # gradient at all (the input view's silhouette does not depend on it) and training collapses.
+    xent_gate: str = "auto"
     # The gate exists because l_xent says nothing about layout when silhouettes do not overlap.
     # In the input view they always do: the 2D box fixes the projection whatever z and rho are.
     # False applies l_xent there ungated, so thin objects (tables start at IoU ~0.2) get a shape
@@ -165,6 +184,22 @@ class LossConfig:
     # left out of this object's l_xent (it may be hidden there), instead of teaching it to carve
     # away what an occluder covers. False: the paper's per-object comparison.
     ignore_occluders: bool = False
+    # "2d": the paper's multi-view silhouette loss L_3D. "3d": Mesh R-CNN's losses against the
+    # objects table's true meshes instead (Table 1's "Mesh R-CNN (3D sup.)" upper bound, Scene-Shapes
+    # only): Chamfer, normal and edge terms on points in the input camera's frame (loss.mesh3d).
+    supervision: str = "2d"
+    mesh3d: Mesh3DLossConfig = field(default_factory=Mesh3DLossConfig)
+
+    def __post_init__(self) -> None:
+        _check_choice("loss.xent_gate", self.xent_gate, ("auto", "iou", "all"))
+        _check_choice("loss.supervision", self.supervision, ("2d", "3d"))
+        if self.weights.dist < 0:
+            raise ConfigError(f"loss.weights.dist: must be >= 0, got {self.weights.dist}")
+
+    @property
+    def gated(self) -> bool:
+        """Whether l_xent is gated by IoU (``xent_gate``, with "auto" resolved)."""
+        return self.xent_gate == "iou" or (self.xent_gate == "auto" and self.weights.dist * self.dist_scale > 0)
 
 
 @dataclass
