@@ -170,11 +170,11 @@ class LossConfig:
     # The IoU gate of Eq. 4, the key Table 1's ablations vary: with loss.xent_gate=iou, l_xent applies
     # to an (object, view) pair only when IoU(rendered > 0.5, true) exceeds this (paper: 0.5).
     iou_threshold: float = 0.5
-    # Which pairs l_xent applies to. "iou": the gate above (paper Eq. 4), "all": every pair. "auto":
-    # "iou" while l_dist is on, "all" when loss.weights.dist (or dist_scale) is 0. The gate hands non-overlapping
-    # pairs to l_dist; without l_dist nothing else supervises them, the layout (z, rho) then gets no
-    # gradient at all (the input view's silhouette does not depend on it) and training collapses.
-    xent_gate: str = "auto"
+    # Which pairs l_xent applies to: "iou" (paper Eq. 4, also for Table 1's "w/o l_dist" row: only
+    # l_dist is removed) or "all" (no gate). Without l_dist neither trains at CPU scale (README):
+    # gated, other-view pairs fall below the threshold and z, rho get no gradient; ungated, l_xent
+    # drives z and rho to the ends of their range, where the silhouettes vanish.
+    xent_gate: str = "iou"
     # The gate exists because l_xent says nothing about layout when silhouettes do not overlap.
     # In the input view they always do: the 2D box fixes the projection whatever z and rho are.
     # False applies l_xent there ungated, so thin objects (tables start at IoU ~0.2) get a shape
@@ -191,15 +191,10 @@ class LossConfig:
     mesh3d: Mesh3DLossConfig = field(default_factory=Mesh3DLossConfig)
 
     def __post_init__(self) -> None:
-        _check_choice("loss.xent_gate", self.xent_gate, ("auto", "iou", "all"))
+        _check_choice("loss.xent_gate", self.xent_gate, ("iou", "all"))
         _check_choice("loss.supervision", self.supervision, ("2d", "3d"))
         if self.weights.dist < 0:
             raise ConfigError(f"loss.weights.dist: must be >= 0, got {self.weights.dist}")
-
-    @property
-    def gated(self) -> bool:
-        """Whether l_xent is gated by IoU (``xent_gate``, with "auto" resolved)."""
-        return self.xent_gate == "iou" or (self.xent_gate == "auto" and self.weights.dist * self.dist_scale > 0)
 
 
 @dataclass

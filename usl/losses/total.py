@@ -32,7 +32,7 @@ class LossWeights:
     offset_l2: float = 0.05  # ½‖dV‖² on pre-tanh offsets
     laplacian: float = 0.0  # uniform Laplacian smoothing
     # l_dist inside L_3D (times loss.dist_scale and loss.dist_schedule). 0 is Table 1's "w/o
-    # l_dist": l_dist is not computed at all, and l_xent then applies to every pair (loss.xent_gate)
+    # l_dist": l_dist is not computed at all, so it adds exactly no gradient
     dist: float = 1.0
 
     @classmethod

@@ -111,7 +111,7 @@ def multiview_silhouette_loss(
     xent = silhouette_bce_loss(rendered.soft, rendered.target, rendered.valid, cfg.iou_threshold)
     is_input = torch.cat(pairs.is_input)
     other_views_gate = xent.gate[~is_input].float().mean() if bool((~is_input).any()) else None
-    if not cfg.gated:  # loss.xent_gate: l_xent on every pair
+    if cfg.xent_gate == "all":  # l_xent on every pair
         xent = xent._replace(gate=torch.ones_like(xent.gate))
     elif not cfg.gate_input_view:
         xent = xent._replace(gate=xent.gate | is_input)
