@@ -25,12 +25,15 @@ class ChamferNormal(NamedTuple):
 
 def chamfer_normal_loss(
     pred_points: Tensor, pred_normals: Tensor, true_points: Tensor, true_normals: Tensor,
-    max_elements: int = DEFAULT_MAX_ELEMENTS,
+    max_elements: int = DEFAULT_MAX_ELEMENTS, backend: str = "auto",
 ) -> ChamferNormal:
     """Per-pair Chamfer-L2 and normal terms between (B, N, 3) and (B, M, 3) point sets with unit
-    normals, differentiable w.r.t. the predicted points and normals (and the true ones)."""
-    pred_to_true, pred_nn = nearest_neighbors(pred_points, true_points, max_elements=max_elements)
-    true_to_pred, true_nn = nearest_neighbors(true_points, pred_points, max_elements=max_elements)
+    normals, differentiable w.r.t. the predicted points and normals (and the true ones).
+
+    ``backend`` finds the neighbours (``nearest_neighbors``): "auto" uses scipy's k-d tree on CPU,
+    where brute force over Mesh R-CNN's 5000 x 5000 points per object costs seconds per step."""
+    pred_to_true, pred_nn = nearest_neighbors(pred_points, true_points, max_elements=max_elements, backend=backend)
+    true_to_pred, true_nn = nearest_neighbors(true_points, pred_points, max_elements=max_elements, backend=backend)
     chamfer = pred_to_true.mean(1) + true_to_pred.mean(1)
     normals = _normal_term(pred_normals, true_normals, pred_nn) + _normal_term(true_normals, pred_normals, true_nn)
     return ChamferNormal(chamfer, normals)
