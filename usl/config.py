@@ -167,6 +167,18 @@ class RenderConfig:
 
 
 @dataclass
+class Mesh3DLossConfig:
+    """Mesh R-CNN's 3D mesh losses (``loss.supervision=3d``). Defaults: its ShapeNet config
+    (meshrcnn ``configs/shapenet``: CHAMFER_LOSS_WEIGHT 1.0, NORMALS_LOSS_WEIGHT 0.0, EDGE_LOSS_WEIGHT 0.2,
+    GT_NUM_SAMPLES = PRED_NUM_SAMPLES = 5000)."""
+
+    chamfer: float = 1.0  # Chamfer-L2 between points on the predicted and the true mesh (m^2)
+    normals: float = 0.0  # 1 - |cos| between the normals of nearest point pairs, both ways
+    edge: float = 0.2  # squared edge length of the predicted mesh in the camera frame (m^2)
+    num_samples: int = 5000  # points sampled on each predicted and each true mesh
+
+
+@dataclass
 class LossConfig:
     weights: LossWeights = field(default_factory=LossWeights)
     render: RenderConfig = field(default_factory=RenderConfig)
@@ -181,7 +193,14 @@ class LossConfig:
     dist_schedule: PiecewiseLinear = field(default_factory=PiecewiseLinear)
     mesh_points: int = 1000  # points sampled on each mesh surface for l_dist
     mask_points: int = 1000  # points sampled in each true silhouette for l_dist
-    iou_threshold: float = 0.5  # l_xent applies only above this IoU (paper Eq. 4)
+    # The IoU gate of Eq. 4, the key Table 1's ablations vary: with loss.xent_gate=iou, l_xent applies
+    # to an (object, view) pair only when IoU(rendered > 0.5, true) exceeds this (paper: 0.5).
+    iou_threshold: float = 0.5
+    # Which pairs l_xent applies to: "iou" (paper Eq. 4, also for Table 1's "w/o l_dist" row: only
+    # l_dist is removed) or "all" (no gate). Without l_dist neither trains at CPU scale (README):
+    # gated, other-view pairs fall below the threshold and z, rho get no gradient; ungated, l_xent
+    # drives z and rho to the ends of their range, where the silhouettes vanish.
+    xent_gate: str = "iou"
     # The gate exists because l_xent says nothing about layout when silhouettes do not overlap.
     # In the input view they always do: the 2D box fixes the projection whatever z and rho are.
     # False applies l_xent there ungated, so thin objects (tables start at IoU ~0.2) get a shape
@@ -195,8 +214,17 @@ class LossConfig:
     # image's mean (1 = the paper's uniform mean). The input view is where the 2D box fixes the
     # frustum, so its silhouette depends on the shape alone; >1 asks the shape to fit it first.
     input_view_weight: float = 1.0
+    # "2d": the paper's multi-view silhouette loss L_3D. "3d": Mesh R-CNN's losses against the
+    # objects table's true meshes instead (Table 1's "Mesh R-CNN (3D sup.)" upper bound, Scene-Shapes
+    # only): Chamfer, normal and edge terms on points in the input camera's frame (loss.mesh3d).
+    supervision: str = "2d"
+    mesh3d: Mesh3DLossConfig = field(default_factory=Mesh3DLossConfig)
 
     def __post_init__(self) -> None:
+        _check_choice("loss.xent_gate", self.xent_gate, ("iou", "all"))
+        _check_choice("loss.supervision", self.supervision, ("2d", "3d"))
+        if self.weights.dist < 0:
+            raise ConfigError(f"loss.weights.dist: must be >= 0, got {self.weights.dist}")
         if self.input_view_weight <= 0:
             raise ConfigError(f"loss.input_view_weight must be > 0, got {self.input_view_weight}")
 

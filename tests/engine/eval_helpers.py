@@ -134,16 +134,19 @@ class PerfectPredictor:
         return out
 
 
-def tiny_checkpoint(run_dir: Path, seed: int = 0, categories: tuple[str, ...] | None = None) -> Path:
-    """A randomly initialised tiny USL model saved like a training run (categories of scene_shapes by default)."""
+def tiny_checkpoint(
+    run_dir: Path, seed: int = 0, categories: tuple[str, ...] | None = None, overrides: tuple[str, ...] = (), iteration: int = 0
+) -> Path:
+    """A randomly initialised tiny USL model saved like a training run (categories of scene_shapes by
+    default), as if at ``iteration``, with config ``overrides``."""
     from usl.config import LayoutRange, load_config, to_dict
     from usl.engine.checkpoint import write_run_checkpoint
     from usl.model.usl_model import USLModel
 
     spec = load_dataset_spec("scene_shapes")
-    cfg = load_config("tiny")
+    cfg = load_config("tiny", overrides)
     cfg.model.categories = categories or tuple(c["name"] for c in spec["categories"])
     cfg.model.layout_range = LayoutRange(**{k: float(v) for k, v in spec["layout"].items()})
     torch.manual_seed(seed)
     model = USLModel(cfg.model, cfg.loss)
-    return write_run_checkpoint(run_dir, 0, {"config": to_dict(cfg), "model": model.state_dict()})
+    return write_run_checkpoint(run_dir, iteration, {"config": to_dict(cfg), "model": model.state_dict()})

@@ -43,6 +43,27 @@ def test_every_row_with_a_checkpoint(data, tmp_path, capsys):
     assert "curves" not in table  # the random checkpoint's run folder has no curves.png
 
 
+def test_model_rows_are_named_by_their_training_and_the_scored_checkpoint_is_recorded(data, tmp_path, capsys):
+    dataset, usl_checkpoint = data
+    meshrcnn = tiny_checkpoint(tmp_path / "meshrcnn", overrides=("loss.supervision=3d",), iteration=7)
+    common = ["--rows", "fixed,model,detections", "--samples-3d", "50", "--pictures", "0", "--device", "cpu", "--quiet"]
+    for checkpoint, extra, name, iteration in (
+        (meshrcnn.parent.parent, [], "Mesh R-CNN (3D sup.)", 7),  # a run folder: its newest checkpoint
+        (usl_checkpoint, [], "USL", 0),
+        (usl_checkpoint, ["--model-name", "USL (5 views)"], "USL (5 views)", 0),
+    ):
+        out = tmp_path / name.replace(" ", "_")
+        assert main([str(dataset), "--checkpoint", str(checkpoint), "--out", str(out), *common, *extra]) == 0, capsys.readouterr().err
+        document = json.loads((out / "metrics.json").read_text())
+        assert [p["name"] for p in document["predictors"]] == ["Fixed depth", name, f"{name} w/ detections"]
+        file = meshrcnn if iteration == 7 else usl_checkpoint
+        assert document["checkpoint"]["path"] == str(file.resolve()) and document["checkpoint"]["iteration"] == iteration
+        assert f"{name}: checkpoint `{file.resolve()}`, iteration {iteration}" in (out / "table.md").read_text()
+    assert main([str(dataset), "--rows", "fixed", "--out", str(tmp_path / "none"), *common[2:]]) == 0
+    assert json.loads((tmp_path / "none" / "metrics.json").read_text())["checkpoint"] is None
+    assert "checkpoint" not in (tmp_path / "none" / "table.md").read_text()
+
+
 def _index_entries(index):
     """(picture path, scene, input view, objects.jsonl line numbers) of each row of index.md."""
     entries = []

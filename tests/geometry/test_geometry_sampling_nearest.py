@@ -102,3 +102,18 @@ def test_chamfer_directions_masks_and_gradients():
     torch.testing.assert_close(xy[0], brute.min(1).values)
     torch.testing.assert_close(yx[0], brute.min(0).values)
     assert torch.autograd.gradcheck(lambda a, b: chamfer_directions(a, b, x_valid, y_valid), (x, y))
+
+
+def test_kdtree_backend_finds_the_same_neighbours_with_the_same_gradient():
+    generator = torch.Generator().manual_seed(3)
+    x = torch.rand(2, 400, 3, generator=generator, dtype=torch.float64, requires_grad=True)
+    y = torch.rand(2, 300, 3, generator=generator, dtype=torch.float64)
+    valid = torch.rand(2, 300, generator=generator) > 0.3
+    results = {}
+    for backend in ("torch", "kdtree"):
+        sq, idx = nearest_neighbors(x, y, valid, backend=backend)
+        (grad,) = torch.autograd.grad(sq.sum(), x)
+        results[backend] = sq.detach(), idx, grad
+    torch.testing.assert_close(results["torch"][0], results["kdtree"][0])
+    assert torch.equal(results["torch"][1], results["kdtree"][1]) and valid.gather(1, results["kdtree"][1]).all()
+    torch.testing.assert_close(results["torch"][2], results["kdtree"][2])

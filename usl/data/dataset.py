@@ -15,12 +15,13 @@ import torch
 from torch.utils.data import Dataset
 
 from usl.config import DataConfig
-from usl.records import RecordsDataset, decode_mask, decoding, frame_K, frame_pose
+from usl.records import RecordsDataset, UslError, decode_mask, decoding, frame_K, frame_pose
 
 from .frames import CategoryIndex, FrameData, decode_frame
 from .samples import MultiViewSample, TargetView
 from .sampling import sample_other_views
 from .transforms import resize_frame, resize_target_view
+from .true_meshes import object_true_meshes
 
 # Columns a loss-only view needs (no image, no depth).
 TARGET_COLUMNS = ("scene_id", "view_id", "height", "width", "K", "cam_to_world", "instances")
@@ -35,11 +36,22 @@ class SampleKey(NamedTuple):
 
 
 class MultiViewDataset(Dataset):
-    def __init__(self, records: RecordsDataset, cfg: DataConfig, categories: CategoryIndex, seed: int = 0):
+    """``with_true_meshes`` adds each loss object's objects-table mesh in the input camera's frame
+    (``loss.supervision=3d``); otherwise the objects table is never read."""
+
+    def __init__(
+        self, records: RecordsDataset, cfg: DataConfig, categories: CategoryIndex, seed: int = 0, with_true_meshes: bool = False
+    ):
+        if with_true_meshes and not records.has_objects:
+            raise UslError(
+                f"{records.root}: split {records.split!r} has no objects table (3D ground truth); "
+                "loss.supervision=3d needs one (Scene-Shapes builds have it, Hypersim and ScanNet do not)"
+            )
         self.records = records
         self.cfg = cfg
         self.categories = categories
         self.seed = seed
+        self.with_true_meshes = with_true_meshes
         self.items: list[tuple[str, int]] = [
             (scene_id, position)
             for scene_id in records.scene_ids
@@ -72,11 +84,16 @@ class MultiViewDataset(Dataset):
         other_rows = self.records.read_scene(scene_id, views=others, columns=TARGET_COLUMNS) if others else []
         object_rows = torch.from_numpy(rows).long()
         views = [input_target_view(frame, object_rows)] + [decode_target_view(r, object_ids, source) for r in other_rows]
+        true_meshes = None
+        if self.with_true_meshes:  # camera-frame meshes: resizing the image does not change them
+            where = f"{self.records.root} scene {scene_id!r}"
+            true_meshes = object_true_meshes(self.records.read_objects(scene_id), object_ids.tolist(), frame.cam_to_world, where)
         return MultiViewSample(
             frame=resize_frame(frame, self.cfg.max_size),
             object_rows=object_rows,
             views=[resize_target_view(v, self.cfg.max_size) for v in views],
             seed=int(rng.integers(2**62)),
+            true_meshes=true_meshes,
         )
 
     def scene_index(self, scene_id: str) -> tuple[list[int], list[np.ndarray]]:

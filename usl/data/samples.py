@@ -7,6 +7,7 @@ from dataclasses import dataclass, fields, replace
 import torch
 
 from .frames import FrameData
+from .true_meshes import TrueMesh
 
 Tensor = torch.Tensor
 
@@ -39,13 +40,15 @@ class MultiViewSample:
 
     ``views[0]`` is the input view itself (j = 1 in the paper's sum). ``seed`` keys every random
     draw of this sample's loss (points on meshes and silhouettes), so the loss of a sample does
-    not depend on the batch it lands in, the process, or the number of GPUs.
+    not depend on the batch it lands in, the process, or the number of GPUs. ``true_meshes`` (one
+    per loss object, in the input camera's frame) are there only for ``loss.supervision=3d``.
     """
 
     frame: FrameData
     object_rows: Tensor  # (N,) long: rows of ``frame``'s instances that are the loss's objects
     views: list[TargetView]
     seed: int
+    true_meshes: list[TrueMesh] | None = None
 
     def to(self, device: torch.device | str) -> "MultiViewSample":
         frame = replace(
@@ -53,7 +56,8 @@ class MultiViewSample:
             **{f.name: getattr(self.frame, f.name).to(device) for f in fields(self.frame)
                if isinstance(getattr(self.frame, f.name), Tensor)},
         )
-        return MultiViewSample(frame, self.object_rows.to(device), [v.to(device) for v in self.views], self.seed)
+        meshes = None if self.true_meshes is None else [m.to(device) for m in self.true_meshes]
+        return MultiViewSample(frame, self.object_rows.to(device), [v.to(device) for v in self.views], self.seed, meshes)
 
 
 def collate_samples(samples: list[MultiViewSample]) -> list[MultiViewSample]:

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import os
 import random
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -90,8 +91,18 @@ def checkpoint_config(payload: dict[str, Any]) -> Config:
         raise CheckpointError(f"{payload.get('path', 'checkpoint')}: stored config is invalid: {exc}") from exc
 
 
-def load_model(checkpoint_path: str | Path, device: str | torch.device = "cpu"):
-    """``(USLModel in eval mode on device, Config)`` from a checkpoint file or run folder."""
+@dataclass
+class LoadedCheckpoint:
+    """A trained model with what says which one it is: reports name the file and iteration scored."""
+
+    model: Any  # usl.model.usl_model.USLModel, in eval mode
+    config: Config
+    path: Path  # the checkpoint file (a run folder resolves to its newest)
+    iteration: int
+
+
+def load_checkpoint(checkpoint_path: str | Path, device: str | torch.device = "cpu") -> LoadedCheckpoint:
+    """The model of a checkpoint file or run folder, with its config, file and iteration."""
     from usl.model.usl_model import USLModel  # the model imports engine-free modules only
 
     payload = read_checkpoint(checkpoint_path)
@@ -101,7 +112,13 @@ def load_model(checkpoint_path: str | Path, device: str | torch.device = "cpu"):
         model.load_state_dict(payload["model"])
     except RuntimeError as exc:
         raise CheckpointError(f"{payload['path']}: weights do not fit the model its config describes: {exc}") from exc
-    return model.to(device).eval(), config
+    return LoadedCheckpoint(model.to(device).eval(), config, Path(payload["path"]).resolve(), int(payload.get("iteration", -1)))
+
+
+def load_model(checkpoint_path: str | Path, device: str | torch.device = "cpu"):
+    """``(USLModel in eval mode on device, Config)`` from a checkpoint file or run folder."""
+    loaded = load_checkpoint(checkpoint_path, device)
+    return loaded.model, loaded.config
 
 
 # ----------------------------------------------------------------------------- run folders

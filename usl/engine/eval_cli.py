@@ -2,8 +2,9 @@
 
     usl-eval DATA --split val --checkpoint runs/tiny --out eval/ --rows random,fixed,model,detections
     usl-eval DATA --checkpoint runs/hs --input-views first --max-scenes 20 --pictures 8 --pictures-by extremes
+    usl-eval DATA --checkpoint runs/meshrcnn --rows model    # a loss.supervision=3d run: "Mesh R-CNN (3D sup.)"
 
-Writes ``metrics.json`` (per-predictor means and counts, configuration), ``objects.jsonl`` (every
+Writes ``metrics.json`` (per-predictor means and counts, configuration, the checkpoint scored), ``objects.jsonl`` (every
 scored object, for re-aggregation), ``table.md`` (the paper's table layout for the dataset, with
 links to the pictures and to the training run's ``curves.png``) and ``pictures/`` with
 ``pictures/index.md`` (each picture with its objects' lines in ``objects.jsonl``).
@@ -33,7 +34,10 @@ def parser() -> argparse.ArgumentParser:
     p = make_parser(COMMAND, __doc__, parents=[common])
     p.add_argument("root", help="dataset folder (records with manifest.json)")
     p.add_argument("--split", default="val", help="split to evaluate")
-    p.add_argument("--checkpoint", help="trained model checkpoint or run folder (needed by the model rows)")
+    p.add_argument("--checkpoint", help="trained model checkpoint or run folder (its newest checkpoint; needed by the "
+                   "model rows); its file and iteration are recorded in metrics.json and table.md")
+    p.add_argument("--model-name", help="label of the model rows (default: how the checkpoint was trained: 'USL', or "
+                   "'Mesh R-CNN (3D sup.)' for loss.supervision=3d); derived rows add to it, e.g. 'NAME w/ detections'")
     p.add_argument("--rows", help=f"comma-separated table rows from {', '.join(ROWS)} "
                    "(default: random,fixed, plus model,layout_only with --checkpoint)")
     p.add_argument("--input-views", default="all",
@@ -87,7 +91,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     try:
         dataset = RecordsDataset(args.root, args.split)
-        predictors = build_predictors(args, dataset_spec(dataset.manifest))
+        predictors, scored = build_predictors(args, dataset_spec(dataset.manifest))
         config = EvalConfig(
             input_views=args.input_views, other_views=args.other_views, occlusion=not args.no_occlusion,
             match_iou=args.match_iou, occluder_score=args.occluder_score, num_samples_3d=args.samples_3d, f1_threshold=args.f1_threshold,
@@ -102,7 +106,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         )
         links = {"pictures": os.path.relpath(run.pictures_index, out) if run.pictures_index else None,
                  "training curves": training_curves(args.checkpoint, out)}
-        paths = write_report(out, run.header, run.summaries, run.rows, run.layout,
+        header = {**run.header, "checkpoint": scored}
+        paths = write_report(out, header, run.summaries, run.rows, run.layout,
                              {k: v for k, v in links.items() if v})
     except UslError as exc:
         print(f"{COMMAND}: error: {exc}", file=sys.stderr)

@@ -52,28 +52,44 @@ class ModelPredictor:
         return [boxes_to_frame(p, r.size, f.size) for p, r, f in zip(preds, resized, frames)]
 
 
+# The table row of a model, by how it was trained (``loss.supervision``): Table 1's labels.
+ROW_NAMES = {"2d": "USL", "3d": "Mesh R-CNN (3D sup.)"}
+
+
 def load_checkpoint_model(checkpoint: str | Path, device: str):
     """``(model, config)`` with checkpoint problems turned into one-line ``UslError``s."""
-    from usl.engine.checkpoint import CheckpointError, load_model
+    loaded = load_scored_checkpoint(checkpoint, device)
+    return loaded.model, loaded.config
+
+
+def load_scored_checkpoint(checkpoint: str | Path, device: str):
+    """``usl.engine.checkpoint.LoadedCheckpoint``, with problems as one-line ``UslError``s."""
+    from usl.engine.checkpoint import CheckpointError, load_checkpoint
 
     try:
-        return load_model(checkpoint, device)
+        return load_checkpoint(checkpoint, device)
     except CheckpointError as exc:
         raise UslError(str(exc)) from exc
 
 
 def model_predictors(
-    checkpoint: str | Path, device: str, category_names: Sequence[str] | None = None, name: str = "USL"
-) -> tuple[ModelPredictor, ModelPredictor]:
-    """The model with ground-truth boxes and with its own detections, sharing one loaded network."""
-    model, config = load_checkpoint_model(checkpoint, device)
+    checkpoint: str | Path, device: str, category_names: Sequence[str] | None = None, name: str | None = None
+) -> tuple[ModelPredictor, ModelPredictor, dict[str, Any]]:
+    """The model with ground-truth boxes and with its own detections, sharing one loaded network,
+    and what was scored (``{"path", "iteration", "supervision"}``, for the report). ``name`` labels
+    the rows; by default it says how the model was trained (``ROW_NAMES``)."""
+    loaded = load_scored_checkpoint(checkpoint, device)
+    config = loaded.config
     model_categories = list(config.model.categories)
     if category_names is not None and model_categories != list(category_names):
         raise UslError(
             f"{checkpoint}: the model was trained on categories {model_categories}, the dataset has {list(category_names)}"
         )
+    name = name or ROW_NAMES[config.loss.supervision]
     max_size = int(config.data.max_size)
+    scored = {"path": str(loaded.path), "iteration": loaded.iteration, "supervision": config.loss.supervision, "name": name}
     return (
-        ModelPredictor(model, max_size, "gt_boxes", name),
-        ModelPredictor(model, max_size, "detections", f"{name} w/ detections"),
+        ModelPredictor(loaded.model, max_size, "gt_boxes", name),
+        ModelPredictor(loaded.model, max_size, "detections", f"{name} w/ detections"),
+        scored,
     )

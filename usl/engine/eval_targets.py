@@ -12,9 +12,8 @@ from typing import Any, Collection, Sequence
 import numpy as np
 import torch
 
-from usl.engine.eval_types import TrueMesh
-from usl.geometry.cameras import rigid_inverse, transform_points
-from usl.records import decode_mask, decoding, frame_K, frame_pose, object_mesh
+from usl.data.true_meshes import true_meshes_in_camera  # noqa: F401  (re-exported for evaluation)
+from usl.records import decode_mask, decoding, frame_K, frame_pose
 
 Tensor = torch.Tensor
 
@@ -73,15 +72,4 @@ def presence(rows: Sequence[dict[str, Any]]) -> dict[int, list[int]]:
     for position, row in enumerate(rows):
         for inst in row["instances"] or []:
             out.setdefault(int(inst["instance_id"]), []).append(position)
-    return out
-
-
-def true_meshes_in_camera(object_rows: Sequence[dict[str, Any]], cam_to_world: Tensor) -> dict[int, TrueMesh]:
-    """Objects-table meshes (world frame) moved into a camera's frame: X_cam = inv(cam_to_world) X_world."""
-    world_to_cam = rigid_inverse(cam_to_world.double().cpu())
-    out = {}
-    for row in object_rows:
-        verts, faces = object_mesh(row)
-        cam = transform_points(torch.from_numpy(verts).double(), world_to_cam).float()
-        out[int(row["instance_id"])] = TrueMesh(verts=cam, faces=torch.from_numpy(faces).long())
     return out

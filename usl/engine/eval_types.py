@@ -12,17 +12,10 @@ from typing import Protocol, Sequence
 import torch
 
 from usl.data.frames import FrameData
+from usl.data.true_meshes import TrueMesh  # noqa: F401  (part of EvalInput)
 from usl.model.outputs import ObjectPredictions
 
 Tensor = torch.Tensor
-
-
-@dataclass
-class TrueMesh:
-    """A ground-truth object mesh in the *input view's* camera frame (Scene-Shapes objects table)."""
-
-    verts: Tensor  # (V, 3) float32, metres
-    faces: Tensor  # (F, 3) int64
 
 
 @dataclass

@@ -105,8 +105,9 @@ def run_evaluation(
     return EvalRun(header, summaries, rows, layout, gallery.write_index(rows))
 
 
-def build_predictors(args: argparse.Namespace, spec: dict[str, Any]) -> list[Predictor]:
-    """The table rows asked for on the command line, in the paper's order."""
+def build_predictors(args: argparse.Namespace, spec: dict[str, Any]) -> tuple[list[Predictor], dict[str, Any] | None]:
+    """The table rows asked for on the command line, in the paper's order, and the checkpoint the
+    model rows score (path, iteration, supervision, row name; None without model rows)."""
     wanted = [r.strip() for r in args.rows.split(",") if r.strip()] if args.rows else (
         ["random", "fixed"] + (["model", "layout_only"] if args.checkpoint else [])
     )
@@ -121,11 +122,13 @@ def build_predictors(args: argparse.Namespace, spec: dict[str, Any]) -> list[Pre
         key = "fixed" if row == "sphere_true_depth" else row
         if row in wanted and key not in baselines:
             raise UslError(f"--rows {row}: the dataset spec of {spec.get('name')!r} has no {key}_depth baseline parameters")
-    model = detector = None
+    model = detector = scored = None
     if needs_model:
         from usl.engine.eval_model import model_predictors  # imports the model only when it is used
 
-        model, detector = model_predictors(args.checkpoint, args.device, [c["name"] for c in spec["categories"]])
+        model, detector, scored = model_predictors(
+            args.checkpoint, args.device, [c["name"] for c in spec["categories"]], args.model_name
+        )
     made: dict[str, Predictor] = {}
     for row in wanted:
         if row in ("random", "fixed"):
@@ -142,4 +145,4 @@ def build_predictors(args: argparse.Namespace, spec: dict[str, Any]) -> list[Pre
             made[row] = TrueDepth(sphere, args.true_depth_source, name="Sphere-only w/ true depth")
         elif row == "model_true_depth":
             made[row] = TrueDepth(model, args.true_depth_source)
-    return list(made.values())
+    return list(made.values()), scored

@@ -100,6 +100,13 @@ def json_safe(value: Any) -> Any:
     return value
 
 
+def checkpoint_line(scored: Mapping[str, Any] | None) -> str:
+    """Which trained model the model rows score, so a table is never separated from its checkpoint."""
+    if not scored:
+        return ""
+    return f"{scored['name']}: checkpoint `{scored['path']}`, iteration {scored['iteration']}\n\n"
+
+
 def write_report(
     out_dir: str | Path, header: dict[str, Any], summaries: Sequence[PredictorSummary], rows: Sequence[dict[str, Any]],
     layout: str, links: Mapping[str, str] | None = None,
@@ -119,5 +126,5 @@ def write_report(
             f.write(json.dumps(json_safe(row)) + "\n")
     title = f"# {header.get('dataset', 'dataset')} / {header.get('split', '')}: {header.get('num_input_views', 0)} input views\n\n"
     footer = "".join(f"\n{name.capitalize()}: [{target}]({target})\n" for name, target in links.items())
-    paths["table"].write_text(title + markdown_table(summaries, layout) + footer)
+    paths["table"].write_text(title + checkpoint_line(header.get("checkpoint")) + markdown_table(summaries, layout) + footer)
     return paths

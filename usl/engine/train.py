@@ -77,7 +77,10 @@ class Trainer:
         fill_dataset_fields(cfg, records)
         seed_everything(cfg.train.seed, info.rank)
         self.step = TrainStep(cfg, info)
-        dataset = MultiViewDataset(records, cfg.data, CategoryIndex(records.categories), seed=cfg.train.seed)
+        dataset = MultiViewDataset(
+            records, cfg.data, CategoryIndex(records.categories), seed=cfg.train.seed,
+            with_true_meshes=cfg.loss.supervision == "3d",
+        )
         if len(dataset) // info.world_size < cfg.train.batch_size:
             raise ConfigError(
                 f"{records.root} split {cfg.data.train_split!r} has {len(dataset)} input views: too few for "

@@ -27,7 +27,9 @@ def _faces_padded(meshes: Meshes, values: Tensor) -> Tensor:
     return out
 
 
-def sample_points_from_meshes(meshes: Meshes, num_samples: int, generator: torch.Generator | None = None) -> Tensor:
+def sample_points_from_meshes(
+    meshes: Meshes, num_samples: int, generator: torch.Generator | None = None, return_normals: bool = False
+) -> Tensor | tuple[Tensor, Tensor]:
     """Sample points uniformly over each mesh's surface (area-weighted face choice + barycentric).
 
     Faces are drawn with probability proportional to their area (a non-differentiable
@@ -37,7 +39,9 @@ def sample_points_from_meshes(meshes: Meshes, num_samples: int, generator: torch
     ``generator`` (on the meshes' device) makes the draw reproducible.
 
     Returns:
-        (B, num_samples, 3) points, in the dtype and on the device of the vertices.
+        (B, num_samples, 3) points, in the dtype and on the device of the vertices; with
+        ``return_normals`` also (B, num_samples, 3) unit normals of the faces they lie on (by the
+        faces' winding; zero on degenerate faces), for Mesh R-CNN's normal loss.
     """
     verts, faces = meshes.verts_packed(), meshes.faces_packed()
     if len(meshes) == 0:
@@ -56,4 +60,9 @@ def sample_points_from_meshes(meshes: Meshes, num_samples: int, generator: torch
     r = torch.rand(len(meshes), num_samples, 2, dtype=verts.dtype, device=verts.device, generator=generator)
     s = r[..., 0].sqrt()
     bary = torch.stack([1.0 - s, s * (1.0 - r[..., 1]), s * r[..., 1]], dim=-1)
-    return (bary.unsqueeze(-1) * corners).sum(-2)
+    points = (bary.unsqueeze(-1) * corners).sum(-2)
+    if not return_normals:
+        return points
+    v0, v1, v2 = corners.unbind(-2)
+    normals = torch.nn.functional.normalize(torch.cross(v1 - v0, v2 - v0, dim=-1), dim=-1, eps=1e-12)
+    return points, normals

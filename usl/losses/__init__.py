@@ -1,4 +1,6 @@
-"""The paper's training losses: 2D silhouette losses (Sec. 3.4), shape regularizers, weighting."""
+"""The paper's training losses: 2D silhouette losses (Sec. 3.4), shape regularizers, weighting,
+and Mesh R-CNN's 3D mesh losses for the 3D-supervised baseline."""
+from usl.losses.mesh3d import ChamferNormal, chamfer_normal_loss
 from usl.losses.regularizers import laplacian_smoothing_loss, mesh_edge_loss, offset_l2_loss
 from usl.losses.silhouette import (
     SilhouetteBCE,
@@ -11,9 +13,11 @@ from usl.losses.schedule import PiecewiseLinear
 from usl.losses.total import LossWeights, combine_losses
 
 __all__ = [
+    "ChamferNormal",
     "LossWeights",
     "PiecewiseLinear",
     "SilhouetteBCE",
+    "chamfer_normal_loss",
     "combine_losses",
     "l2d_loss",
     "laplacian_smoothing_loss",

@@ -2,7 +2,8 @@
 
 Here L_2D is Mask R-CNN's detection losses (RPN and box head), L_3D the mean of the
 per-pair ``l2d_loss`` over objects and views, and
-``L_reg = edge * L_edge + offset_l2 * ½‖dV‖² + laplacian * L_laplac``.
+``L_reg = edge * L_edge + offset_l2 * ½‖dV‖² + laplacian * L_laplac``. Inside L_3D,
+``dist`` weighs l_dist (``l_2D = dist * l_dist + 1[IoU > t] l_xent``): 0 is Table 1's "w/o l_dist".
 
 The paper's recipes (``LossWeights.recipe(name)``):
 
@@ -30,6 +31,9 @@ class LossWeights:
     edge: float = 0.0  # L_edge (Mesh R-CNN's edge length)
     offset_l2: float = 0.05  # ½‖dV‖² on pre-tanh offsets
     laplacian: float = 0.0  # uniform Laplacian smoothing
+    # l_dist inside L_3D (times loss.dist_scale and loss.dist_schedule). 0 is Table 1's "w/o
+    # l_dist": l_dist is not computed at all, so it adds exactly no gradient
+    dist: float = 1.0
 
     @classmethod
     def recipe(cls, dataset: str) -> LossWeights:

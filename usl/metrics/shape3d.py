@@ -3,12 +3,10 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
-import numpy as np
 import torch
-from scipy.spatial import cKDTree
 
 from usl.geometry.meshes import Meshes
-from usl.geometry.nearest import DEFAULT_MAX_ELEMENTS, lengths_to_mask, nearest_neighbors
+from usl.geometry.nearest import DEFAULT_MAX_ELEMENTS, kdtree_indices, lengths_to_mask, nearest_neighbors
 from usl.geometry.sampling import sample_points_from_meshes
 
 Tensor = torch.Tensor
@@ -68,15 +66,14 @@ def chamfer_f1(
 
 
 def _kdtree_sq_distances(x: Tensor, y: Tensor, y_valid: Tensor | None) -> Tensor:
-    """Squared distance from each point of x to its nearest valid point of y, per batch item."""
-    out = np.zeros(x.shape[:2])
-    xs, ys = x.detach().double().cpu().numpy(), y.detach().double().cpu().numpy()
-    valid = None if y_valid is None else y_valid.cpu().numpy()
-    for b in range(x.shape[0]):
-        targets = ys[b] if valid is None else ys[b][valid[b]]
-        if len(targets):
-            out[b] = cKDTree(targets).query(xs[b])[0] ** 2
-    return torch.from_numpy(out).to(dtype=x.dtype, device=x.device)
+    """Squared distance from each point of x to its nearest valid point of y (float64), per batch item."""
+    idx = kdtree_indices(x, y, y_valid)
+    xs, ys = x.detach().double(), y.detach().double()
+    nearest = torch.gather(ys, 1, idx.to(ys.device).unsqueeze(-1).expand(-1, -1, ys.shape[2]))
+    sq = (xs - nearest).pow(2).sum(-1)
+    if y_valid is not None:  # no candidate: 0, as before
+        sq = torch.where(y_valid.any(1, keepdim=True).to(sq.device), sq, 0.0)
+    return sq.to(dtype=x.dtype, device=x.device)
 
 
 def _weights(points: Tensor, valid: Tensor | None) -> Tensor:

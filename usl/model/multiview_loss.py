@@ -61,9 +61,12 @@ class SilhouetteLoss(NamedTuple):
     """L_3D = dist + xent, its two weighted parts (kept apart for gradient diagnostics), and
     detached statistics: mean l_dist, mean l_xent, l_xent without BCE's clamp mass
     (``l_xent_reached``), the fraction of true pixels no face reaches (``unreached``), the
-    fraction of pairs the IoU gate lets into l_xent (``xent_gate``), the soft silhouettes' mean
-    IoU in the input view and in the other views (``iou_input``, ``iou_views``: the training-side
-    counterparts of usl-eval's Mask IoU without occlusion) and l_dist's current factor."""
+    fraction of pairs the IoU gate lets into l_xent (``xent_gate``), the fraction of other-view
+    pairs above the IoU threshold whatever the gate mode (``iou_pass_views``: the pairs a gated
+    l_xent can reach, hence the only ones that move z and rho without l_dist), the soft
+    silhouettes' mean IoU in the input view and in the other views (``iou_input``,
+    ``iou_views``: the training-side counterparts of usl-eval's Mask IoU without occlusion) and
+    l_dist's current factor."""
 
     l3d: Tensor
     dist: Tensor
@@ -81,7 +84,7 @@ def multiview_silhouette_loss(
 ) -> SilhouetteLoss:
     """L_3D for a batch. ``verts_cam`` (N, V, 3) are all objects' meshes in their input camera's
     frame, sample by sample (``counts[i]`` objects for sample i, in ``object_rows`` order).
-    ``iteration`` sets l_dist's factor ``cfg.dist_scale * cfg.dist_schedule(iteration)``.
+    ``iteration`` sets l_dist's factor ``cfg.weights.dist * cfg.dist_scale * cfg.dist_schedule(iteration)``.
     """
     verts_cam = verts_cam.float()
     pairs = _Pairs([], [], [], [], [], [], [], [], [], [])
@@ -94,10 +97,13 @@ def multiview_silhouette_loss(
         zero = verts_cam.sum() * 0.0
         return SilhouetteLoss(zero, zero, zero, {})
     verts, K = torch.cat(pairs.verts), torch.cat(pairs.K)
-    true_lengths = torch.cat(pairs.true_lengths)
-    dist = silhouette_chamfer_loss(
-        torch.cat(pairs.points), K, torch.cat(pairs.sizes), torch.cat(pairs.true_points), true_lengths
-    )
+    dist_factor = cfg.weights.dist * cfg.dist_scale * cfg.dist_schedule(iteration)
+    if dist_factor:
+        dist = silhouette_chamfer_loss(
+            torch.cat(pairs.points), K, torch.cat(pairs.sizes), torch.cat(pairs.true_points), torch.cat(pairs.true_lengths)
+        )
+    else:  # "w/o l_dist": not computed, so it contributes exactly no gradient (and costs nothing)
+        dist = verts.new_zeros(len(verts))
     num_pairs, num_verts = verts.shape[:2]
     faces_packed = (faces[None] + num_verts * torch.arange(num_pairs, device=faces.device)[:, None, None]).reshape(-1, 3)
     face_window = torch.arange(num_pairs, device=faces.device).repeat_interleave(faces.shape[0])
@@ -108,23 +114,25 @@ def multiview_silhouette_loss(
     )
     xent = silhouette_bce_loss(rendered.soft, rendered.target, rendered.valid, cfg.iou_threshold)
     is_input = torch.cat(pairs.is_input)
-    if not cfg.gate_input_view:
+    others = ~is_input
+    other_views = {"iou_pass_views": xent.gate[others].float().mean(), "iou_views": xent.iou[others].mean()} if bool(others.any()) else {}
+    if cfg.xent_gate == "all":  # l_xent on every pair
+        xent = xent._replace(gate=torch.ones_like(xent.gate))
+    elif not cfg.gate_input_view:
         xent = xent._replace(gate=xent.gate | is_input)
     weight = torch.cat(pairs.weight)
-    dist_factor = cfg.dist_scale * cfg.dist_schedule(iteration)
     l3d = (l2d_loss(dist_factor * dist, xent) * weight).sum()
     dist_part = (dist_factor * dist * weight).sum()  # the gated l_xent part is the rest of l_2D
     stats = {
-        "l_dist": dist.detach().mean(),
+        **({"l_dist": dist.detach().mean()} if dist_factor else {}),
         "l_xent": xent.loss.detach().mean(),
         "l_xent_reached": xent.loss_reached.mean(),
         "unreached": xent.unreached.mean(),
         "xent_gate": xent.gate.float().mean(),
         "iou_input": xent.iou[is_input].mean(),
+        **other_views,
         "dist_factor": torch.tensor(dist_factor),
     }
-    if not is_input.all():
-        stats["iou_views"] = xent.iou[~is_input].mean()
     return SilhouetteLoss(l3d, dist_part, l3d - dist_part, stats)
 
 

@@ -25,6 +25,7 @@ from usl.losses import combine_losses
 from usl.model.backbone import IMAGENET_MEAN, IMAGENET_STD
 from usl.model.detector import ImageList, MaskRCNN, MultiScaleRoIAlign
 from usl.model.heads import LayoutHead, LayoutPrediction, ShapeHead, ShapePrediction
+from usl.model.mesh3d_loss import mesh_supervision_loss
 from usl.model.multiview_loss import multiview_silhouette_loss, shape_regularizers
 from usl.model.outputs import ObjectPredictions
 from usl.model.pretrained import init_detector, print_report
@@ -41,6 +42,13 @@ class ObjectOutputs:
     shape: ShapePrediction
     verts_cam: Tensor  # (N, V, 3) meshes in their input camera's frame
     counts: list[int]  # objects per image
+    boxes: Tensor  # (N, 4) the boxes the frustums are built on
+    K: Tensor  # (N, 3, 3) each object's input camera
+
+    def stage_verts_cam(self) -> list[Tensor]:
+        """Every refinement stage's meshes in the input camera's frame (the last is ``verts_cam``)."""
+        cast = [cube_to_frustum(v.float(), self.boxes, self.K, self.layout.z, self.layout.rho) for v in self.shape.stage_verts[:-1]]
+        return cast + [self.verts_cam]
 
 
 class USLModel(nn.Module):
@@ -105,10 +113,11 @@ class USLModel(nn.Module):
         layout = self.layout_head(self.layout_pooler(features, boxes), flat_labels)
         shape = self.shape_head(features, boxes, flat_labels)
         counts = [len(b) for b in boxes]
+        flat_boxes = torch.cat(boxes)
         flat_K = torch.cat([k.float().expand(n, 3, 3) for k, n in zip(K, counts)])
         with _autocast_off(shape.verts):
-            verts_cam = cube_to_frustum(shape.verts.float(), torch.cat(boxes), flat_K, layout.z, layout.rho)
-        return ObjectOutputs(layout, shape, verts_cam, counts)
+            verts_cam = cube_to_frustum(shape.verts.float(), flat_boxes, flat_K, layout.z, layout.rho)
+        return ObjectOutputs(layout, shape, verts_cam, counts, flat_boxes, flat_K)
 
     # ------------------------------------------------------------------ training
     def forward(self, samples: list[MultiViewSample], iteration: int = 0, diagnostics: bool = False) -> dict[str, Tensor]:
@@ -117,8 +126,10 @@ class USLModel(nn.Module):
 
         ``iteration`` drives the loss schedules (``loss.dist_schedule``). ``diagnostics`` adds the
         gradient norms of l_dist's and the gated l_xent's parts at the shape head's output
-        (``stat/grad_dist``, ``stat/grad_xent``): two extra backward passes through the loss,
-        none through the network, so the trainer asks for them on logging steps only."""
+        (``stat/grad_dist``, ``stat/grad_xent``) and of L_3D at z and rho (``stat/grad_z``,
+        ``stat/grad_rho``): extra backward passes through the loss, none through the network, so
+        the trainer asks for them on logging steps only. With ``loss.supervision=3d`` L_3D is Mesh
+        R-CNN's loss against the samples' true meshes (``usl.model.mesh3d_loss``)."""
         frames = [s.frame for s in samples]
         image_list, features = self._backbone(frames)
         weights = self.loss_cfg.weights
@@ -136,18 +147,16 @@ class USLModel(nn.Module):
             [s.frame.K for s in samples],
         )
         with _autocast_off(outputs.verts_cam):
-            silhouette = multiview_silhouette_loss(
-                outputs.verts_cam, self.faces, samples, outputs.counts, self.loss_cfg, iteration
-            )
-            stats = dict(silhouette.stats)
-            if diagnostics:
-                stats.update(_gradient_norms(outputs.shape.verts, {"dist": silhouette.dist, "xent": silhouette.xent}))
-                if stats["grad_xent"] > 0:  # no ratio while the gate keeps every pair out of l_xent
-                    stats["grad_ratio"] = stats["grad_dist"] / stats["grad_xent"]
+            if self.loss_cfg.supervision == "3d":
+                l3d, stats = mesh_supervision_loss(
+                    outputs.stage_verts_cam(), self.faces, samples, outputs.counts, self.loss_cfg.mesh3d
+                )
+            else:
+                l3d, stats = self._silhouette_loss(outputs, samples, iteration, diagnostics)
             need = {name: bool(getattr(weights, name) * weights.mu_reg) for name in ("edge", "offset_l2", "laplacian")}
             regs = shape_regularizers(outputs.shape.verts, outputs.shape.offsets, self.faces, outputs.counts, need)
             # Keep both heads in the graph even for a batch without objects (DDP needs every gradient).
-            l3d = silhouette.l3d + 0.0 * (outputs.layout.z.sum() + outputs.layout.rho.sum() + outputs.shape.verts.sum())
+            l3d = l3d + 0.0 * (outputs.layout.z.sum() + outputs.layout.rho.sum() + outputs.shape.verts.sum())
             total, parts = combine_losses(weights, l3d, detection, **regs)
         parts["loss"] = total
         parts.update({f"stat/{k}": v for k, v in stats.items()})
@@ -155,6 +164,22 @@ class USLModel(nn.Module):
             parts["stat/z"] = outputs.layout.z.detach().mean()
             parts["stat/rho"] = outputs.layout.rho.detach().mean()
         return parts
+
+    def _silhouette_loss(
+        self, outputs: ObjectOutputs, samples: list[MultiViewSample], iteration: int, diagnostics: bool
+    ) -> tuple[Tensor, dict[str, Tensor]]:
+        """The paper's multi-view L_3D and its statistics (with gradient diagnostics when asked)."""
+        silhouette = multiview_silhouette_loss(outputs.verts_cam, self.faces, samples, outputs.counts, self.loss_cfg, iteration)
+        stats = dict(silhouette.stats)
+        if diagnostics:
+            stats.update(_gradient_norms(outputs.shape.verts, {"dist": silhouette.dist, "xent": silhouette.xent}))
+            # the layout's own signal: the input view's silhouette does not depend on z and rho, so
+            # without l_dist only the other-view pairs l_xent reaches move them
+            stats.update(_gradient_norms(outputs.layout.z, {"z": silhouette.l3d}))
+            stats.update(_gradient_norms(outputs.layout.rho, {"rho": silhouette.l3d}))
+            if stats["grad_xent"] > 0:  # no ratio while the gate keeps every pair out of l_xent
+                stats["grad_ratio"] = stats["grad_dist"] / stats["grad_xent"]
+        return silhouette.l3d, stats
 
     # ------------------------------------------------------------------ inference
     @torch.no_grad()

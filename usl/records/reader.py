@@ -143,6 +143,11 @@ class RecordsDataset:
         except Exception as exc:  # corrupt pages: checksum, decompression or decoding errors
             raise UslError(f"{shard.path}: scene {scene_id!r} views at positions {views}: cannot read ({one_line(exc)})") from exc
 
+    @property
+    def has_objects(self) -> bool:
+        """Whether every shard of the split has an objects table (3D ground truth)."""
+        return bool(self.shards) and all(s.get("objects") for s in self.shards)
+
     def read_objects(self, scene_id: str) -> list[dict[str, Any]]:
         """3D ground-truth objects of a scene (empty if the dataset has none)."""
         loc = self._location(scene_id)
