@@ -210,10 +210,6 @@ class LossConfig:
     # left out of this object's l_xent (it may be hidden there), instead of teaching it to carve
     # away what an occluder covers. False: the paper's per-object comparison.
     ignore_occluders: bool = False
-    # Weight of the input view's (object, view) pairs relative to the other views' in each
-    # image's mean (1 = the paper's uniform mean). The input view is where the 2D box fixes the
-    # frustum, so its silhouette depends on the shape alone; >1 asks the shape to fit it first.
-    input_view_weight: float = 1.0
     # "2d": the paper's multi-view silhouette loss L_3D. "3d": Mesh R-CNN's losses against the
     # objects table's true meshes instead (Table 1's "Mesh R-CNN (3D sup.)" upper bound, Scene-Shapes
     # only): Chamfer, normal and edge terms on points in the input camera's frame (loss.mesh3d).
@@ -225,8 +221,6 @@ class LossConfig:
         _check_choice("loss.supervision", self.supervision, ("2d", "3d"))
         if self.weights.dist < 0:
             raise ConfigError(f"loss.weights.dist: must be >= 0, got {self.weights.dist}")
-        if self.input_view_weight <= 0:
-            raise ConfigError(f"loss.input_view_weight must be > 0, got {self.input_view_weight}")
 
 
 @dataclass

@@ -164,26 +164,6 @@ def test_gate_input_view_false_applies_l_xent_in_the_input_view_only(setup):
     assert full[1].item() == pytest.approx(full[0].item() + input_share)
 
 
-def test_input_view_weight_reweights_the_per_image_mean(setup):
-    """With weight w the image's L_3D is (w n_0 A + n_r B) / (w n_0 + n_r), A and B the mean pair
-    losses of the input view and of the other views, both found from the paper's uniform mean."""
-    cfg, records, dataset = setup
-    sample = dataset[SampleKey(0, 0)]
-    verts, faces = _true_meshes(records, dataset, sample, 0)
-    verts = verts * 1.2
-    counts = [len(verts)]
-    n0 = int(sample.views[0].present.sum())
-    nr = sum(int(v.present.sum()) for v in sample.views[1:])
-    uniform = multiview_silhouette_loss(verts, faces, [sample], counts, cfg.loss).l3d
-    a = multiview_silhouette_loss(verts, faces, [replace(sample, views=sample.views[:1])], counts, cfg.loss).l3d
-    b = (uniform * (n0 + nr) - n0 * a) / nr
-    for w in (0.5, 3.0):
-        weighted = multiview_silhouette_loss(verts, faces, [sample], counts, replace(cfg.loss, input_view_weight=w)).l3d
-        torch.testing.assert_close(weighted, (w * n0 * a + nr * b) / (w * n0 + nr))
-    with pytest.raises(ValueError, match="input_view_weight"):
-        load_config("tiny", ["loss.input_view_weight=0"])
-
-
 def test_ignore_occluders_scores_true_meshes_as_perfect_despite_occlusion(setup):
     """True masks show visible parts only, so a true (amodal) mesh seems wrong wherever another
     object hides it; with ``ignore_occluders`` those cells are unobserved and every pair passes the gate."""

@@ -6,9 +6,8 @@ mean over the batch's images. Two choices the paper leaves open:
 * An object not annotated in view j (out of frame, fully occluded, not tracked) has no true
   silhouette there; its (o, j) pair is dropped rather than compared with an empty mask, because
   our renderer draws each object alone (no occluders) and an empty target would push an
-  occluded object out of the view. The per-image mean runs over the remaining pairs (its
-  input-view pairs weighted ``loss.input_view_weight``, 1 in the paper); the input view always
-  has every object.
+  occluded object out of the view. The per-image mean runs over the remaining pairs; the
+  input view always has every object.
 * Every loss term is normalised per image and then averaged over the batch (images without
   objects count as 0), so a batch split over GPUs (DDP averages per-GPU losses) gives exactly
   the gradient of the whole batch on one GPU.
@@ -142,9 +141,7 @@ def _gather_pairs(
     generator = torch.Generator(device=verts.device).manual_seed(sample.seed)
     surface = sample_points_from_meshes(Meshes.from_shared_topology(verts, faces), cfg.mesh_points, generator)
     input_pose = sample.views[0].cam_to_world
-    counts = [int(view.present.sum()) for view in sample.views]
-    # each image's pairs sum to 1 / batch_size; the input view's count input_view_weight times
-    total_weight = cfg.input_view_weight * counts[0] + sum(counts[1:])
+    num_pairs = sum(int(view.present.sum()) for view in sample.views)
     for position, view in enumerate(sample.views):
         present = torch.nonzero(view.present).squeeze(1)
         if len(present) == 0:
@@ -159,8 +156,7 @@ def _gather_pairs(
         pairs.masks.extend(masks.unbind(0))
         pairs.K.append(view.K.float().expand(len(present), 3, 3))
         pairs.sizes.append(torch.tensor(view.size, device=verts.device).expand(len(present), 2))
-        view_weight = cfg.input_view_weight if position == 0 else 1.0
-        pairs.weight.append(torch.full((len(present),), view_weight / (total_weight * batch_size), device=verts.device))
+        pairs.weight.append(torch.full((len(present),), 1.0 / (num_pairs * batch_size), device=verts.device))
         pairs.is_input.append(torch.full((len(present),), position == 0, device=verts.device))
         if cfg.ignore_occluders:
             pairs.occluders.extend((view.masks.any(dim=0) & ~masks).unbind(0))
