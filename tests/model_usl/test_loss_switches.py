@@ -5,21 +5,16 @@ from dataclasses import replace
 import pytest
 import torch
 
-from usl.config import ConfigError, LayoutRange, load_config
-from usl.data import CategoryIndex, MultiViewDataset, SampleKey
+from usl.config import ConfigError, load_config
+from usl.data import SampleKey
 from usl.model.multiview_loss import multiview_silhouette_loss
-from usl.records import RecordsDataset
 
 from test_usl_model import _true_meshes  # noqa: E402  (same folder: the samples' true cuboids)
 
 
 @pytest.fixture(scope="module")
-def setup(synthetic_root):
-    cfg = load_config("tiny", [f"data.root={synthetic_root}", "data.num_views=4", "data.max_size=0"])
-    records = RecordsDataset(synthetic_root, "train")
-    cfg.model.categories = tuple(c["name"] for c in records.categories)
-    cfg.model.layout_range = LayoutRange(**records.manifest["layout"])
-    dataset = MultiViewDataset(records, cfg.data, CategoryIndex(records.categories), seed=0)
+def setup(tiny_synthetic):
+    cfg, records, dataset = tiny_synthetic
     sample = dataset[SampleKey(0, 0)]
     verts, faces = _true_meshes(records, dataset, sample, 0)
     loss = replace(cfg.loss, gate_input_view=True, ignore_occluders=False, dist_schedule=type(cfg.loss.dist_schedule)())

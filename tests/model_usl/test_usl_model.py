@@ -5,24 +5,17 @@ import numpy as np
 import pytest
 import torch
 
-from usl.config import LayoutRange, load_config
 from usl.losses import PiecewiseLinear
-from usl.data import CategoryIndex, MultiViewDataset, SampleKey
+from usl.data import SampleKey
 from usl.geometry.cameras import project, transform_points
 from usl.model.multiview_loss import multiview_silhouette_loss
 from usl.model.outputs import ObjectPredictions
 from usl.model.usl_model import USLModel
-from usl.records import RecordsDataset
 
 
 @pytest.fixture(scope="module")
-def setup(synthetic_root):
-    cfg = load_config("tiny", [f"data.root={synthetic_root}", "data.num_views=4", "data.max_size=0"])
-    records = RecordsDataset(synthetic_root, "train")
-    cfg.model.categories = tuple(c["name"] for c in records.categories)
-    cfg.model.layout_range = LayoutRange(**records.manifest["layout"])
-    dataset = MultiViewDataset(records, cfg.data, CategoryIndex(records.categories), seed=0)
-    return cfg, records, dataset
+def setup(tiny_synthetic):
+    return tiny_synthetic
 
 
 def _true_meshes(records, dataset, sample, index):
