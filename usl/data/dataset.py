@@ -18,6 +18,7 @@ from usl.config import DataConfig
 from usl.records import RecordsDataset, UslError, decode_mask, decoding, frame_K, frame_pose
 
 from .frames import CategoryIndex, FrameData, decode_frame
+from .mirror import mirror_sample
 from .samples import MultiViewSample, TargetView
 from .sampling import sample_other_views
 from .transforms import resize_frame, resize_target_view
@@ -88,13 +89,17 @@ class MultiViewDataset(Dataset):
         if self.with_true_meshes:  # camera-frame meshes: resizing the image does not change them
             where = f"{self.records.root} scene {scene_id!r}"
             true_meshes = object_true_meshes(self.records.read_objects(scene_id), object_ids.tolist(), frame.cam_to_world, where)
-        return MultiViewSample(
+        sample = MultiViewSample(
             frame=resize_frame(frame, self.cfg.max_size),
             object_rows=object_rows,
             views=[resize_target_view(v, self.cfg.max_size) for v in views],
             seed=int(rng.integers(2**62)),
             true_meshes=true_meshes,
         )
+        # drawn last and only when enabled, so samples without flipping are unchanged
+        if self.cfg.flip_prob > 0 and rng.random() < self.cfg.flip_prob:
+            sample = mirror_sample(sample)
+        return sample
 
     def scene_index(self, scene_id: str) -> tuple[list[int], list[np.ndarray]]:
         """View ids and per-view instance ids of a scene (LRU-cached per process)."""
