@@ -31,18 +31,12 @@ usl-records info "$DATA" --sheet "$OUT/contact_sheet.png"
 echo "== 3/4 train the tiny recipe on CPU"
 # One process per core (DDP over gloo) on 2+ cores, each with half of tiny's 4-image batch: the
 # same batches as one process, ~1.4x the iterations per second. USL_MAIN_PROCS=1 forces one.
+source scripts/train_procs.sh
 PROCS=${USL_MAIN_PROCS:-$(( $(cores) >= 2 ? 2 : 1 ))}
-train() {
-  if (( PROCS > 1 )); then
-    torchrun --standalone --nproc_per_node "$PROCS" -m usl.engine.train "$@" train.batch_size=$(( 4 / PROCS ))
-  else
-    usl-train "$@"
-  fi
-}
 if compgen -G "$RUN/checkpoints/model_*.pt" >/dev/null; then
-  train --config tiny --out "$RUN" --resume
+  train_with_procs "$PROCS" --config tiny --out "$RUN" --resume
 else
-  train --config tiny --out "$RUN" data.root="$DATA"
+  train_with_procs "$PROCS" --config tiny --out "$RUN" data.root="$DATA"
 fi
 
 echo "== 4/4 evaluate on the held-out build against the baselines"

@@ -8,7 +8,9 @@
 #
 # Environment: USL_EXP_DIR (default runs/experiments), USL_EXP_CONFIG (default tiny),
 # USL_EXP_TRAIN_SCENES (scenes and models of the training build, default 60 as the main job),
-# USL_EXP_EVAL_VIEWS (input views scored per held-out scene, default every:4, i.e. 96 views).
+# USL_EXP_EVAL_VIEWS (input views scored per held-out scene, default every:4, i.e. 96 views),
+# USL_EXP_PROCS (training processes, default 1; 2 trains like the main job: DDP, 2 images each).
+# The main job's protocol: USL_EXP_PROCS=2 USL_EXP_EVAL_VIEWS=every:8 bash scripts/recipe_experiment.sh ...
 # Writes $USL_EXP_DIR/NAME/{train,eval}; prints the held-out table and the training CPU time.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -28,7 +30,8 @@ experiment_builds "$DATA" "${USL_EXP_TRAIN_SCENES:-60}" 60 --quiet
 rm -rf "$RUN" && mkdir -p "$RUN"
 # CPU time is the figure to compare on a shared machine; the progress bar goes to train.log
 /usr/bin/time -o "$RUN/train_time.txt" -f "training: %e s wall, %U s user CPU" \
-  python3 -m usl.engine.train --config "${USL_EXP_CONFIG:-tiny}" --out "$RUN/train" data.root="$TRAIN" "$@" \
+  bash -c 'source scripts/train_procs.sh && train_with_procs "$@"' train "${USL_EXP_PROCS:-1}" \
+  --config "${USL_EXP_CONFIG:-tiny}" --out "$RUN/train" data.root="$TRAIN" "$@" \
   > "$RUN/train.log" 2>&1 || { tail -5 "$RUN/train.log"; exit 1; }
 cat "$RUN/train_time.txt"
 # every split of the seed-1 build is unseen; its train split is the largest

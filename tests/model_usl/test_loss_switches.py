@@ -76,6 +76,38 @@ def test_without_l_dist_the_gate_rewards_leaving_it(setup):
     assert close < near and close < deep and g_near < 0 < g_deep  # descent moves the depth to the truth
 
 
+def _xent_along_scale(loss, sample, verts, faces, blur_radius, scales):
+    """Input-view l_xent alone (ungated, no l_dist) and its derivative as each object is scaled
+    about its own centre (scale < 1: the mesh lies inside its true silhouette)."""
+    cfg = _with(loss, weights={"dist": 0.0}, xent_gate="all", render=replace(loss.render, blur_radius=blur_radius))
+    only_input = replace(sample, views=sample.views[:1])
+    centre = verts.mean(dim=1, keepdim=True)
+    curve = []
+    for s0 in scales:
+        scale = torch.tensor(s0, requires_grad=True)
+        out = multiview_silhouette_loss(centre + scale * (verts - centre), faces, [only_input], [len(verts)], cfg)
+        (grad,) = torch.autograd.grad(out.l3d, scale)
+        curve.append((out.l3d.item(), grad.item(), out.stats["unreached"].item()))
+    return curve
+
+
+def test_at_blur_radius_sigma_l_xent_shrinks_a_mesh_inside_its_silhouette(setup):
+    """The collapse of "w/o l_dist": with the paper's literal blur radius = sigma = 1e-3 a face
+    touches cells within ~1 cell of it (soft value 0.27 at the cut-off), so a true cell farther
+    out costs BCE's clamp (100) with no gradient. The loss falls as a shrunk mesh grows back, but
+    its gradient points the other way: descent shrinks it further. With PyTorch3D's usual
+    blur radius ln(1/1e-4 - 1) sigma (soft value 1e-4 at the cut-off) it grows back."""
+    loss, sample, verts, faces = setup
+    scales = (0.5, 0.7)
+    literal = _xent_along_scale(loss, sample, verts, faces, 1e-3, scales)
+    assert literal[0][0] > literal[1][0]  # a larger mesh is better ...
+    assert literal[0][1] > 0 and literal[1][1] > 0  # ... yet the gradient says shrink
+    assert literal[0][2] > 0.5  # most true cells are beyond reach
+    wide = _xent_along_scale(loss, sample, verts, faces, 9.21e-3, scales)
+    assert wide[0][0] > wide[1][0] and wide[0][1] < 0 and wide[1][1] < 0  # descent grows it
+    assert wide[0][2] < literal[0][2]
+
+
 def test_iou_threshold_decides_which_pairs_pass_the_gate(setup):
     loss, sample, verts, faces = setup
     centre = verts.mean(dim=1, keepdim=True)

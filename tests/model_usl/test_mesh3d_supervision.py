@@ -18,7 +18,7 @@ from test_usl_model import _true_meshes  # noqa: E402  (same folder: an independ
 @pytest.fixture(scope="module")
 def setup(synthetic_root):
     cfg = load_config("tiny", [f"data.root={synthetic_root}", "data.max_size=0", "loss.supervision=3d",
-                               "loss.mesh3d.num_samples=500"])
+                               "loss.mesh3d.num_samples=500", "data.flip_prob=0"])
     records = RecordsDataset(synthetic_root, "train")
     cfg.model.categories = tuple(c["name"] for c in records.categories)
     cfg.model.layout_range = LayoutRange(**records.manifest["layout"])

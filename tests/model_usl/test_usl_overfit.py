@@ -21,7 +21,7 @@ from usl.render import rasterize_hard
 OVERRIDES = [
     "loss.weights.mu_2d=0", "loss.weights.offset_l2=0.05", "optim.lr=3e-3", "optim.max_iter=60", "train.batch_size=3", "train.cpu_threads=1",
     "data.num_views=3", "data.max_size=0", "model.shape.num_stages=1", "loss.mesh_points=200", "loss.mask_points=200",
-    "loss.render.resolution=32", "train.checkpoint_every=1000", "train.log_every=10",
+    "loss.render.resolution=32", "train.checkpoint_every=1000", "train.log_every=10", "data.flip_prob=0",
 ]
 
 

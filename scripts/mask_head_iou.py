@@ -1,0 +1,90 @@
+"""How well do a trained model's 2D features tell each object from its background?
+
+Per object of a build's input views, given the TRUE box, the IoU with the true (visible) mask of:
+the detector's mask head, the predicted mesh's own silhouette (no other object occluding it), and
+the ellipse inscribed in the box (what a sphere in the box's frustum projects to). If the mask
+head, trained with Mask R-CNN's dense 2D loss on the same images, does no better than the ellipse,
+the image features are the limit, not the shape head or its loss.
+
+    python3 scripts/mask_head_iou.py HELDOUT_BUILD RUN_OR_CHECKPOINT [--split train] [--input-views every:8]
+"""
+from __future__ import annotations
+
+import argparse
+
+import torch
+from tqdm import tqdm
+
+from usl.data.frames import CategoryIndex, decode_frame
+from usl.engine.eval_model import frames_for_model, load_checkpoint_model
+from usl.engine.eval_targets import META_COLUMNS
+from usl.engine.eval_views import select_input_views
+from usl.model.detector.mask_head import paste_masks_in_image, select_class_masks
+from usl.records import RecordsDataset
+from usl.render import rasterize_hard
+
+Tensor = torch.Tensor
+
+
+def iou(a: Tensor, b: Tensor) -> float:
+    union = (a | b).sum().item()
+    return (a & b).sum().item() / union if union else float("nan")
+
+
+def inscribed_ellipses(boxes: Tensor, height: int, width: int) -> Tensor:
+    """(N, H, W) bool: pixel centres inside the ellipse inscribed in each xyxy box."""
+    v, u = torch.meshgrid(torch.arange(height) + 0.5, torch.arange(width) + 0.5, indexing="ij")
+    centre = (boxes[:, :2] + boxes[:, 2:]) / 2
+    half = ((boxes[:, 2:] - boxes[:, :2]) / 2).clamp(min=1e-6)
+    return ((u - centre[:, 0, None, None]) / half[:, 0, None, None]) ** 2 + (
+        (v - centre[:, 1, None, None]) / half[:, 1, None, None]) ** 2 <= 1
+
+
+@torch.no_grad()
+def frame_ious(model, frame) -> dict[str, list[float]]:
+    _, features = model._backbone([frame])
+    heads = model.detector.roi_heads
+    logits = heads.mask_head(heads.mask_pooler(features, [frame.boxes]))
+    mask_head = paste_masks_in_image(select_class_masks(logits, frame.labels), frame.boxes, frame.size, heads.cfg.mask_threshold)
+    verts = model.objects(features, [frame.boxes], [frame.labels], [frame.K]).verts_cam
+    height, width = frame.size
+    one_mesh = torch.zeros(len(model.faces), dtype=torch.long)
+    ellipses = inscribed_ellipses(frame.boxes, height, width)
+    out: dict[str, list[float]] = {"mask head": [], "mesh (no occlusion)": [], "inscribed ellipse": []}
+    for i, true in enumerate(frame.masks.bool()):
+        mesh = rasterize_hard(verts[i], model.faces, one_mesh, frame.K, height, width, num_meshes=1).masks[0].bool()
+        out["mask head"].append(iou(mask_head[i].bool(), true))
+        out["mesh (no occlusion)"].append(iou(mesh, true))
+        out["inscribed ellipse"].append(iou(ellipses[i], true))
+    return out
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("data", help="records folder")
+    parser.add_argument("checkpoint", help="run folder or checkpoint file")
+    parser.add_argument("--split", default="train")
+    parser.add_argument("--input-views", default="every:8")
+    args = parser.parse_args()
+    model, cfg = load_checkpoint_model(args.checkpoint, "cpu")
+    model.eval()
+    dataset = RecordsDataset(args.data, args.split)
+    categories = CategoryIndex(dataset.categories)
+    totals: dict[str, list[float]] = {}
+    for scene_id in tqdm(dataset.scene_ids, desc="scenes", unit="scene"):
+        positions = select_input_views(args.input_views, len(dataset.read_scene(scene_id, columns=list(META_COLUMNS))))
+        for row in dataset.read_scene(scene_id, views=positions):
+            (frame,) = frames_for_model([decode_frame(row, categories, source=dataset.source(scene_id))], cfg.data.max_size)
+            if len(frame.boxes):
+                for name, values in frame_ious(model, frame).items():
+                    totals.setdefault(name, []).extend(values)
+    print(f"| {args.data} ({args.split}, {args.input_views}) | mean mask IoU given the true box | objects |")
+    print("|:---|:---:|:---:|")
+    for name, values in totals.items():
+        kept = torch.tensor(values)
+        kept = kept[~kept.isnan()]
+        print(f"| {name} | {100 * kept.mean():.1f} | {len(kept)} |")
+
+
+if __name__ == "__main__":
+    main()

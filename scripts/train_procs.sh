@@ -1,0 +1,14 @@
+# Sourced by the job scripts: usl-train with one process, or DDP over PROCS processes on this machine.
+#   train_with_procs PROCS usl-train-arguments...
+# With PROCS > 1 each process takes train.batch_size / PROCS of the recipe's images (the recipe's
+# batch is global): the same batches as one process, one process per core (gloo). The caller
+# passes the recipe's batch as USL_TRAIN_BATCH (default 4, tiny's).
+train_with_procs() {
+  local procs=$1
+  shift
+  if (( procs > 1 )); then
+    torchrun --standalone --nproc_per_node "$procs" -m usl.engine.train "$@" train.batch_size=$(( ${USL_TRAIN_BATCH:-4} / procs ))
+  else
+    python3 -m usl.engine.train "$@"
+  fi
+}
