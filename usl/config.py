@@ -1,4 +1,5 @@
-"""Training/model configuration: nested dataclasses, loaded from YAML recipes with ``key=value`` overrides.
+"""Training/model configuration: nested dataclasses, loaded from YAML recipes with ``key=value`` overrides
+(the generic loading machinery is ``usl.config_io``).
 
 A recipe (``usl/configs/<name>.yaml`` or any path) holds only what differs from the dataclass
 defaults; ``_base_: other.yaml`` inherits another recipe first. Overrides use dotted keys
@@ -9,10 +10,6 @@ is saved in the run folder and in each checkpoint.
 """
 from __future__ import annotations
 
-import copy
-import dataclasses
-import types
-import typing
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -20,6 +17,14 @@ from typing import Any, Mapping, Optional, Sequence
 
 import yaml
 
+from usl.config_io import (  # noqa: F401  (re-exported: usl.config is where callers import them)
+    ConfigError,
+    deep_merge,
+    from_dict,
+    parse_overrides,
+    read_yaml_config,
+    to_dict,
+)
 from usl.losses import LossWeights, PiecewiseLinear
 from usl.model.detector import DetectorConfig
 from usl.model.pretrained import FORMATS as INIT_FORMATS
@@ -27,11 +32,6 @@ from usl.model.pretrained import trained_stride_in_1x1
 from usl.render import SoftRasterSettings
 
 CONFIG_DIR = Path(__file__).resolve().parent / "configs"
-BASE_KEY = "_base_"
-
-
-class ConfigError(ValueError):
-    """A config file, key or value is wrong; the message names which."""
 
 
 @dataclass
@@ -314,100 +314,7 @@ def _check_positive(key: str, value: int) -> None:
 
 
 # --------------------------------------------------------------------------------------------
-# dict <-> dataclass
-# --------------------------------------------------------------------------------------------
-def to_dict(obj: Any) -> Any:
-    """Dataclasses to plain dicts, tuples to lists: what ``yaml.safe_dump`` and JSON accept."""
-    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
-        return {f.name: to_dict(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
-    if isinstance(obj, (list, tuple)):
-        return [to_dict(v) for v in obj]
-    if isinstance(obj, dict):
-        return {k: to_dict(v) for k, v in obj.items()}
-    return obj
-
-
-def from_dict(cls: type, data: Any, where: str = "config") -> Any:
-    """Build dataclass ``cls`` from a (nested) mapping, checking keys and value types."""
-    if not isinstance(data, Mapping):
-        raise ConfigError(f"{where}: expected a mapping for {cls.__name__}, got {type(data).__name__} {data!r}")
-    hints = typing.get_type_hints(cls)
-    names = [f.name for f in dataclasses.fields(cls) if f.init]
-    unknown = sorted(set(data) - set(names))
-    if unknown:
-        raise ConfigError(f"{where}: unknown key(s) {unknown}; known: {names}")
-    values = {name: _convert(hints[name], data[name], f"{where}.{name}") for name in names if name in data}
-    try:
-        return cls(**values)
-    except ConfigError as exc:
-        raise ConfigError(f"{where}: {exc}") from None
-    except (TypeError, ValueError) as exc:
-        raise ConfigError(f"{where}: {exc}") from exc
-
-
-def _convert(tp: Any, value: Any, where: str) -> Any:
-    origin, args = typing.get_origin(tp), typing.get_args(tp)
-    if dataclasses.is_dataclass(tp):
-        return from_dict(tp, value, where)
-    if origin in (typing.Union, types.UnionType):
-        if value is None and type(None) in args:
-            return None
-        options = [a for a in args if a is not type(None)]
-        errors = []
-        for option in options:
-            try:
-                return _convert(option, value, where)
-            except ConfigError as exc:
-                errors.append(str(exc))
-        raise ConfigError("; ".join(errors))
-    if origin is tuple:
-        if not isinstance(value, (list, tuple)):
-            raise ConfigError(f"{where}: expected a list, got {value!r}")
-        if len(args) == 2 and args[1] is Ellipsis:
-            return tuple(_convert(args[0], v, f"{where}[{i}]") for i, v in enumerate(value))
-        if len(args) != len(value):
-            raise ConfigError(f"{where}: expected {len(args)} values, got {len(value)}")
-        return tuple(_convert(a, v, f"{where}[{i}]") for i, (a, v) in enumerate(zip(args, value)))
-    if origin is dict:
-        if not isinstance(value, Mapping):
-            raise ConfigError(f"{where}: expected a mapping, got {value!r}")
-        return {_convert(args[0], k, where): _convert(args[1], v, f"{where}.{k}") for k, v in value.items()}
-    if origin is list:
-        if not isinstance(value, (list, tuple)):
-            raise ConfigError(f"{where}: expected a list, got {value!r}")
-        return [_convert(args[0], v, f"{where}[{i}]") for i, v in enumerate(value)]
-    return _convert_scalar(tp, value, where)
-
-
-def _convert_scalar(tp: Any, value: Any, where: str) -> Any:
-    if tp is bool:
-        if isinstance(value, bool):
-            return value
-    elif tp is int:
-        if isinstance(value, int) and not isinstance(value, bool):
-            return value
-        if isinstance(value, float) and value.is_integer():
-            return int(value)
-    elif tp is float:
-        if isinstance(value, (int, float)) and not isinstance(value, bool):
-            return float(value)
-        if isinstance(value, str):  # PyYAML reads "1e-3" (no dot) as a string
-            try:
-                return float(value)
-            except ValueError:
-                pass
-    elif tp is str:
-        if isinstance(value, str):
-            return value
-    elif tp is Any:
-        return value
-    else:
-        raise ConfigError(f"{where}: unsupported config type {tp!r}")
-    raise ConfigError(f"{where}: expected {tp.__name__}, got {type(value).__name__} {value!r}")
-
-
-# --------------------------------------------------------------------------------------------
-# YAML files and overrides
+# The recipes: a checked Config from YAML files and overrides
 # --------------------------------------------------------------------------------------------
 def resolve_config_path(name_or_path: str | Path) -> Path:
     """A recipe name (``tiny``, ``hypersim``) from ``usl/configs`` or a path to a YAML file."""
@@ -418,57 +325,6 @@ def resolve_config_path(name_or_path: str | Path) -> Path:
         known = sorted(p.stem for p in CONFIG_DIR.glob("*.yaml"))
         raise ConfigError(f"config {name_or_path!r}: no such file {path} (built-in recipes: {known})")
     return path
-
-
-def read_yaml_config(path: Path, _seen: tuple[Path, ...] = ()) -> dict[str, Any]:
-    """A recipe as a nested dict, with its ``_base_`` chain merged underneath."""
-    path = path.resolve()
-    if path in _seen:
-        raise ConfigError(f"{path}: {BASE_KEY} chain loops back to itself")
-    try:
-        data = yaml.safe_load(path.read_text()) or {}
-    except yaml.YAMLError as exc:
-        raise ConfigError(f"{path}: not valid YAML ({exc})") from exc
-    if not isinstance(data, dict):
-        raise ConfigError(f"{path}: a config file must hold a mapping, got {type(data).__name__}")
-    base = data.pop(BASE_KEY, None)
-    if base is None:
-        return data
-    base_path = Path(base) if Path(base).is_absolute() else path.parent / base
-    if not base_path.is_file():
-        raise ConfigError(f"{path}: {BASE_KEY} {base!r} does not exist ({base_path})")
-    return deep_merge(read_yaml_config(base_path, _seen + (path,)), data)
-
-
-def deep_merge(base: Mapping[str, Any], update: Mapping[str, Any]) -> dict[str, Any]:
-    merged = copy.deepcopy(dict(base))
-    for key, value in update.items():
-        if isinstance(value, Mapping) and isinstance(merged.get(key), Mapping):
-            merged[key] = deep_merge(merged[key], value)
-        else:
-            merged[key] = copy.deepcopy(value)
-    return merged
-
-
-def parse_overrides(overrides: Sequence[str]) -> dict[str, Any]:
-    """``["optim.lr=0.01", "data.root=/x"]`` -> nested dict; values are parsed as YAML."""
-    nested: dict[str, Any] = {}
-    for item in overrides:
-        key, sep, raw = item.partition("=")
-        if not sep or not key.strip():
-            raise ConfigError(f"override {item!r}: expected key=value (e.g. optim.lr=0.01)")
-        try:
-            value = yaml.safe_load(raw) if raw.strip() else ""
-        except yaml.YAMLError as exc:
-            raise ConfigError(f"override {item!r}: value is not valid YAML ({exc})") from exc
-        node = nested
-        parts = key.strip().split(".")
-        for part in parts[:-1]:
-            node = node.setdefault(part, {})
-            if not isinstance(node, dict):
-                raise ConfigError(f"override {item!r}: {part!r} is set both as a value and as a section")
-        node[parts[-1]] = value
-    return nested
 
 
 def load_config(name_or_path: str | Path, overrides: Sequence[str] = ()) -> Config:
