@@ -36,14 +36,13 @@ def fit_sample(sample, cfg, steps: int, lr: float, ico_level: int) -> list[dict[
     verts = sphere.expand(n, -1, -1).clone().requires_grad_(True)
     layout = torch.zeros(n, 2, requires_grad=True)  # sigmoid logits of z and rho: mid-range at 0
     K = sample.frame.K.float().expand(n, 3, 3)
-    r = cfg.model.layout_range
     optimizer = torch.optim.Adam([verts, layout], lr=lr)
     weights = replace(cfg.loss.weights, mu_2d=0.0)  # no detector here
     need = {name: bool(getattr(weights, name) * weights.mu_reg) for name in ("edge", "laplacian")}  # no offsets here
     history = []
     for step in range(steps):
         unit = torch.sigmoid(layout)
-        z, rho = r.z0 + unit[:, 0] * (r.z1 - r.z0), r.rho0 + unit[:, 1] * (r.rho1 - r.rho0)
+        z, rho = cfg.model.layout_range.from_unit(unit[:, 0], unit[:, 1])
         silhouette = multiview_silhouette_loss(cube_to_frustum(verts, boxes, K, z, rho), faces, [sample], [n], cfg.loss, step)
         regs = shape_regularizers(verts, [], faces, [n], need)
         total, _ = combine_losses(weights, silhouette.l3d, None, **regs)

@@ -68,6 +68,10 @@ class LayoutRange:
     rho0: float = 0.0  # smallest object extent in depth (metres)
     rho1: float = 0.0  # largest object extent in depth (metres)
 
+    def from_unit(self, z_unit: Any, rho_unit: Any) -> tuple[Any, Any]:
+        """(z, rho) in metres from their positions in [0, 1] along the ranges (floats or tensors)."""
+        return self.z0 + z_unit * (self.z1 - self.z0), self.rho0 + rho_unit * (self.rho1 - self.rho0)
+
 
 @dataclass
 class LayoutHeadConfig:

@@ -40,11 +40,7 @@ class LayoutHead(nn.Module):
         for layer in (self.z_pred, self.rho_pred):
             nn.init.normal_(layer.weight, std=0.001)
             nn.init.zeros_(layer.bias)
-        self.register_buffer(
-            "ranges",
-            torch.tensor([layout_range.z0, layout_range.z1, layout_range.rho0, layout_range.rho1]),
-            persistent=False,
-        )
+        self.layout_range = layout_range
 
     def forward(self, roi_features: Tensor, labels: Tensor) -> LayoutPrediction:
         """roi_features (N, C, P, P) pooled per object; labels (N,) contiguous category indices."""
@@ -52,5 +48,5 @@ class LayoutHead(nn.Module):
         rows = torch.arange(len(labels), device=labels.device)
         z_unit = torch.sigmoid(self.z_pred(x)[rows, labels].float())
         rho_unit = torch.sigmoid(self.rho_pred(x)[rows, labels].float())
-        z0, z1, rho0, rho1 = self.ranges.unbind()
-        return LayoutPrediction(z=z0 + z_unit * (z1 - z0), rho=rho0 + rho_unit * (rho1 - rho0))
+        z, rho = self.layout_range.from_unit(z_unit, rho_unit)
+        return LayoutPrediction(z=z, rho=rho)
