@@ -17,18 +17,13 @@ from tqdm import tqdm
 
 from usl.data.frames import CategoryIndex, decode_frame
 from usl.engine.eval_model import frames_for_model, load_checkpoint_model
-from usl.engine.eval_targets import META_COLUMNS
 from usl.engine.eval_views import select_input_views
+from usl.metrics.masks import mask_iou
 from usl.model.detector.mask_head import paste_masks_in_image, select_class_masks
 from usl.records import RecordsDataset
 from usl.render import rasterize_hard
 
 Tensor = torch.Tensor
-
-
-def iou(a: Tensor, b: Tensor) -> float:
-    union = (a | b).sum().item()
-    return (a & b).sum().item() / union if union else float("nan")
 
 
 def inscribed_ellipses(boxes: Tensor, height: int, width: int) -> Tensor:
@@ -49,14 +44,14 @@ def frame_ious(model, frame) -> dict[str, list[float]]:
     verts = model.objects(features, [frame.boxes], [frame.labels], [frame.K]).verts_cam
     height, width = frame.size
     one_mesh = torch.zeros(len(model.faces), dtype=torch.long)
-    ellipses = inscribed_ellipses(frame.boxes, height, width)
-    out: dict[str, list[float]] = {"mask head": [], "mesh (no occlusion)": [], "inscribed ellipse": []}
-    for i, true in enumerate(frame.masks.bool()):
-        mesh = rasterize_hard(verts[i], model.faces, one_mesh, frame.K, height, width, num_meshes=1).masks[0].bool()
-        out["mask head"].append(iou(mask_head[i].bool(), true))
-        out["mesh (no occlusion)"].append(iou(mesh, true))
-        out["inscribed ellipse"].append(iou(ellipses[i], true))
-    return out
+    # each mesh alone: rendered together they would occlude each other
+    meshes = torch.stack([rasterize_hard(v, model.faces, one_mesh, frame.K, height, width, num_meshes=1).masks[0] for v in verts])
+    true, nan = frame.masks.bool(), float("nan")
+    return {
+        "mask head": mask_iou(mask_head.bool(), true, nan).tolist(),
+        "mesh (no occlusion)": mask_iou(meshes.bool(), true, nan).tolist(),
+        "inscribed ellipse": mask_iou(inscribed_ellipses(frame.boxes, height, width), true, nan).tolist(),
+    }
 
 
 def main() -> None:
@@ -72,7 +67,7 @@ def main() -> None:
     categories = CategoryIndex(dataset.categories)
     totals: dict[str, list[float]] = {}
     for scene_id in tqdm(dataset.scene_ids, desc="scenes", unit="scene"):
-        positions = select_input_views(args.input_views, len(dataset.read_scene(scene_id, columns=list(META_COLUMNS))))
+        positions = select_input_views(args.input_views, dataset.num_views(scene_id))
         for row in dataset.read_scene(scene_id, views=positions):
             (frame,) = frames_for_model([decode_frame(row, categories, source=dataset.source(scene_id))], cfg.data.max_size)
             if len(frame.boxes):

@@ -28,10 +28,14 @@ source scripts/scene_shapes_builds.sh
 experiment_builds "$DATA" "${USL_EXP_TRAIN_SCENES:-60}" 60 --quiet
 
 rm -rf "$RUN" && mkdir -p "$RUN"
+CONFIG=${USL_EXP_CONFIG:-tiny}
+# the recipe's batch, split over the processes by train_with_procs
+USL_TRAIN_BATCH=$(python3 -c "from usl.config import load_config; print(load_config('$CONFIG').train.batch_size)")
+export USL_TRAIN_BATCH
 # CPU time is the figure to compare on a shared machine; the progress bar goes to train.log
 /usr/bin/time -o "$RUN/train_time.txt" -f "training: %e s wall, %U s user CPU" \
   bash -c 'source scripts/train_procs.sh && train_with_procs "$@"' train "${USL_EXP_PROCS:-1}" \
-  --config "${USL_EXP_CONFIG:-tiny}" --out "$RUN/train" data.root="$TRAIN" "$@" \
+  --config "$CONFIG" --out "$RUN/train" data.root="$TRAIN" "$@" \
   > "$RUN/train.log" 2>&1 || { tail -5 "$RUN/train.log"; exit 1; }
 cat "$RUN/train_time.txt"
 # every split of the seed-1 build is unseen; its train split is the largest
