@@ -79,6 +79,10 @@ class LayoutHeadConfig:
     pooler_resolution: int = 7  # RoIAlign bins, then averaged to one 1 x C vector
     num_fc: int = 4  # fully connected layers before the per-category z~, rho~ sigmoids
     fc_dim: int = 256  # width of each of them
+    # Also feed the MLP the 2D box as camera rays (K^-1 at its corners, and its log width and
+    # height): RoIAlign resamples every box to the same grid, so the pooled features lose the
+    # apparent size and image height that tell depth apart. Not in the paper (False there).
+    box_geometry: bool = False
 
 
 @dataclass

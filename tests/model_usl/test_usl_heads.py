@@ -8,6 +8,7 @@ from usl.geometry import cube_to_frustum, ico_sphere, unique_edges
 from usl.geometry.cameras import project
 from usl.model.heads import GraphConv, LayoutHead, ShapeHead, project_cube_to_image, roimap_features, vertalign_features
 from usl.model.backbone import ShapeSpec
+from usl.model.heads.layout import box_geometry
 from usl.model.heads.vertex_features import single_level_pooler
 
 RANGE = LayoutRange(z0=1.0, z1=5.0, rho0=0.2, rho1=2.0)
@@ -49,21 +50,51 @@ def test_graph_conv_inits_mesh_rcnn_small_weights_or_a_scale_keeping_kaiming():
         GraphConv(3, 3, "xavier")
 
 
+K_SIMPLE = torch.tensor([[200.0, 0.0, 64.0], [0.0, 180.0, 48.0], [0.0, 0.0, 1.0]])
+
+
 def test_layout_head_ranges_and_category_specific_outputs():
     torch.manual_seed(0)
     head = LayoutHead(8, 3, LayoutHeadConfig(fc_dim=16), RANGE)
     feats = torch.randn(5, 8, 7, 7)
-    out = head(feats, torch.tensor([0, 1, 2, 0, 1]))
+    boxes, K = torch.tensor([[10.0, 12.0, 40.0, 50.0]]).expand(5, 4), K_SIMPLE.expand(5, 3, 3)
+    out = head(feats, torch.tensor([0, 1, 2, 0, 1]), boxes, K)
     assert out.z.shape == out.rho.shape == (5,)
     assert torch.allclose(out.z, torch.full((5,), 3.0), atol=0.01)  # fresh head: mid-range
     with torch.no_grad():
         head.z_pred.bias.copy_(torch.tensor([-50.0, 0.0, 50.0]))
         head.rho_pred.bias.copy_(torch.tensor([50.0, -50.0, 0.0]))
-    out = head(feats, torch.tensor([0, 1, 2, 0, 1]))
+    out = head(feats, torch.tensor([0, 1, 2, 0, 1]), boxes, K)
     assert torch.allclose(out.z, torch.tensor([1.0, 3.0, 5.0, 1.0, 3.0]), atol=1e-3)
     assert torch.allclose(out.rho, torch.tensor([2.0, 0.2, 1.1, 2.0, 0.2]), atol=1e-3)
     with pytest.raises(ValueError, match="layout range"):
         LayoutHead(8, 3, LayoutHeadConfig(), LayoutRange())
+
+
+def test_box_geometry_is_the_pinhole_rays_of_the_box_corners_and_ignores_resolution():
+    boxes = torch.tensor([[10.0, 12.0, 40.0, 50.0], [60.0, 30.0, 64.0, 96.0]])
+    got = box_geometry(boxes, K_SIMPLE.expand(2, 3, 3))
+    fx, fy, cx, cy = 200.0, 180.0, 64.0, 48.0  # x = (u - cx) / fx for a skew-free pinhole K
+    x0, y0, x1, y1 = (boxes[:, 0] - cx) / fx, (boxes[:, 1] - cy) / fy, (boxes[:, 2] - cx) / fx, (boxes[:, 3] - cy) / fy
+    want = torch.stack([x0, y0, x1, y1, (x1 - x0).log(), (y1 - y0).log()], dim=1)
+    torch.testing.assert_close(got, want)
+    # The same boxes in the image resized by 2.5 x 0.5 (K scaled with it) describe the same rays.
+    scale = torch.tensor([2.5, 0.5, 2.5, 0.5])
+    K_resized = torch.diag(torch.tensor([2.5, 0.5, 1.0])) @ K_SIMPLE
+    torch.testing.assert_close(box_geometry(boxes * scale, K_resized.expand(2, 3, 3)), want)
+
+
+def test_layout_head_sees_the_box_only_with_box_geometry():
+    torch.manual_seed(0)
+    feats, labels = torch.randn(2, 8, 7, 7), torch.tensor([1, 1])
+    near_box = torch.tensor([[20.0, 10.0, 100.0, 90.0]])  # the same features, a 4x larger box
+    far_box = torch.tensor([[50.0, 40.0, 70.0, 60.0]])
+    for enabled in (False, True):
+        head = LayoutHead(8, 3, LayoutHeadConfig(fc_dim=16, box_geometry=enabled), RANGE)
+        assert head.mlp[0].in_features == 8 + (6 if enabled else 0)
+        torch.nn.init.normal_(head.z_pred.weight, std=1.0)
+        z = [head(feats[:1], labels[:1], box, K_SIMPLE[None]).z for box in (near_box, far_box)]
+        assert (z[0] != z[1]).item() is enabled
 
 
 def test_cube_projection_equals_the_frustum_homography_projection():

@@ -110,11 +110,11 @@ class USLModel(nn.Module):
         """Layout and shape for the given boxes (per image), cast into each input camera's frame."""
         boxes = [b.float() for b in boxes]
         flat_labels = torch.cat(labels).long()
-        layout = self.layout_head(self.layout_pooler(features, boxes), flat_labels)
-        shape = self.shape_head(features, boxes, flat_labels)
         counts = [len(b) for b in boxes]
         flat_boxes = torch.cat(boxes)
         flat_K = torch.cat([k.float().expand(n, 3, 3) for k, n in zip(K, counts)])
+        layout = self.layout_head(self.layout_pooler(features, boxes), flat_labels, flat_boxes, flat_K)
+        shape = self.shape_head(features, boxes, flat_labels)
         with _autocast_off(shape.verts):
             verts_cam = cube_to_frustum(shape.verts.float(), flat_boxes, flat_K, layout.z, layout.rho)
         return ObjectOutputs(layout, shape, verts_cam, counts, flat_boxes, flat_K)
