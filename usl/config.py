@@ -172,7 +172,9 @@ class RenderConfig:
     resolution: int = 72  # side of every dynamic-rendering window (paper: 128 Scene-Shapes, 72 others)
     sigma: float = _SOFT.sigma  # sharpness of the soft silhouette (SoftRas sigma)
     blur_radius: float = _SOFT.blur_radius  # faces farther than this from a pixel do not touch it
-    faces_per_pixel: int = 10 if _SOFT.faces_per_pixel is None else _SOFT.faces_per_pixel  # nearest faces blended
+    # the nearest faces by depth blended per pixel; null blends every face within the blur radius
+    # (SoftRas), which skips the per-pixel depth sort
+    faces_per_pixel: int | None = _SOFT.faces_per_pixel
     padding: float = 0.05  # window margin, as a fraction of its longer side
 
     def settings(self) -> SoftRasterSettings:
