@@ -14,6 +14,7 @@ schedule (LR steps, warm-up, l_dist schedule) with it, so a shorter budget keeps
 from __future__ import annotations
 
 import argparse
+import hashlib
 import statistics
 import sys
 from dataclasses import dataclass
@@ -23,7 +24,7 @@ from typing import Sequence
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from usl.config import Config, ConfigError, load_config  # noqa: E402
+from usl.config import Config, ConfigError, dump_config, load_config  # noqa: E402
 
 
 @dataclass(frozen=True)
@@ -50,13 +51,12 @@ ROWS = (
 )
 TRAINED = tuple(r for r in ROWS if r.trained)
 
-# CPU seconds (one thread) measured on this project's 2-core machine, two runs side by side:
-# `bash scripts/table1.sh --quick --iters 20` and `--quick --iters 100 --seeds 0` (2026-12-01);
-# per iteration: the difference of their usl-train CPU times over the 80 extra iterations
-# (usl2 19 -> 57 s, usl5 26 -> 88 s, usl5_vertalign 26 -> 86 s). Not measured yet, their keys being
-# new: usl5_no_dist (taken as usl5) and meshrcnn_3d (taken as tiny's 3 views: the main job's
-# 900 s CPU for 1,500 iterations). Runs of the output folder replace them (their train_time.txt).
-MEASURED_SECONDS_PER_ITER = {"usl2": 0.48, "usl5": 0.77, "usl5_vertalign": 0.76, "usl5_no_dist": 0.77, "meshrcnn_3d": 0.60}
+# CPU seconds (one thread) per iteration, start-up included, measured on this project's 2-core
+# machine with two runs side by side: `bash scripts/table1.sh --iters 600 --seeds 0,1` with tiny's
+# wider blur radius (runs/table1_600/progress.log, 2026-12-01): usl2 438-488 s CPU for 600
+# iterations, usl5 880 s, usl5_vertalign 764-775 s, usl5_no_dist 679-724 s, meshrcnn_3d 784-797 s.
+# Runs of the output folder replace them (their train_time.txt).
+MEASURED_SECONDS_PER_ITER = {"usl2": 0.76, "usl5": 1.47, "usl5_vertalign": 1.28, "usl5_no_dist": 1.17, "meshrcnn_3d": 1.32}
 TRAIN_START_SECONDS = 10.0  # usl-train's start-up and final checkpoint (20 iterations' CPU less 20 x the above)
 # usl-eval --rows model (10k points per mesh, 2 pictures): start-up, and per input view; from
 # 9.0 s CPU for 8 input views and 32.7 s for 64 (the quick held-out build, every:8 and all).
@@ -113,6 +113,12 @@ def duration(seconds: float) -> str:
     return f"{minutes // 60} h {minutes % 60:02d} min" if minutes >= 60 else f"{max(minutes, 1)} min"
 
 
+def recipe_digest(config: str, overrides: Sequence[str]) -> str:
+    """Short sha256 of the resolved recipe: a folder's runs are only reused for the same recipe,
+    not just the same recipe name (a recipe file edited since would mix two recipes in one table)."""
+    return hashlib.sha256(dump_config(load_config(config, overrides)).encode()).hexdigest()[:16]
+
+
 def check_budget(out: Path, stamp: str) -> None:
     """Refuse an output folder whose runs were made with another budget (seeds may be added)."""
     path = out / "budget.txt"
@@ -131,7 +137,8 @@ def plan(config: str, iters: int | None, seeds: Sequence[int], jobs: int, out: P
     recipe = load_config(config)
     iters = iters or recipe.optim.max_iter
     budget = budget_overrides(recipe, iters) + list(extra)
-    check_budget(out, f"config={config}\noverrides={' '.join(budget)}\n{data}\n")
+    check_budget(out, f"config={config} (resolved sha256 {recipe_digest(config, budget)})\n"
+                      f"overrides={' '.join(budget)}\n{data}\n")
     lines, trained, cost, rates = [], [], 0.0, []
     for row in TRAINED:
         overrides = budget + list(row.overrides)

@@ -156,3 +156,17 @@ def test_plan_skips_rows_whose_key_is_missing_and_keeps_its_budget(tmp_path):
         table1_plan.plan("tiny", 80, [0, 1], 2, tmp_path, ["val.period=0"], data="train=a heldout=b")
     assert table1_plan.main(["--out", str(tmp_path), "--iters", "40", "--seeds", "0,1,2", "--data", "train=a heldout=b",
                              "val.period=0"]) == 0  # more seeds on the same budget are fine
+
+
+def test_a_folder_is_refused_once_its_recipe_file_changes(tmp_path):
+    """Same recipe name, same options, edited recipe: its runs must not land in the old table."""
+    recipe = tmp_path / "mine.yaml"
+    tiny = Path(table1_plan.ROOT) / "usl" / "configs" / "tiny.yaml"
+    recipe.write_text(f"_base_: {tiny}\nloss: {{render: {{blur_radius: 9.21e-3}}}}\n")
+    out = tmp_path / "table"
+    table1_plan.plan(str(recipe), 40, [0], 1, out)
+    table1_plan.plan(str(recipe), 40, [0, 1], 1, out)  # unchanged: more seeds are fine
+    recipe.write_text(f"_base_: {tiny}\nloss: {{render: {{blur_radius: 4.6e-3}}}}\n")
+    with pytest.raises(ValueError, match="another budget"):
+        table1_plan.plan(str(recipe), 40, [0, 1], 1, out)
+
