@@ -10,17 +10,11 @@ the image features are the limit, not the shape head or its loss.
 """
 from __future__ import annotations
 
-import argparse
-
 import torch
-from tqdm import tqdm
 
-from usl.data.frames import CategoryIndex, decode_frame
-from usl.engine.eval_model import frames_for_model, load_checkpoint_model
-from usl.engine.eval_views import select_input_views
+from diagnostic_inputs import input_frames, load_model, parse_args
 from usl.metrics.masks import mask_iou
 from usl.model.detector.mask_head import paste_masks_in_image, select_class_masks
-from usl.records import RecordsDataset
 from usl.render import rasterize_hard
 
 Tensor = torch.Tensor
@@ -55,24 +49,12 @@ def frame_ious(model, frame) -> dict[str, list[float]]:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("data", help="records folder")
-    parser.add_argument("checkpoint", help="run folder or checkpoint file")
-    parser.add_argument("--split", default="train")
-    parser.add_argument("--input-views", default="every:8")
-    args = parser.parse_args()
-    model, cfg = load_checkpoint_model(args.checkpoint, "cpu")
-    model.eval()
-    dataset = RecordsDataset(args.data, args.split)
-    categories = CategoryIndex(dataset.categories)
+    args = parse_args(__doc__.splitlines()[0])
+    model, cfg = load_model(args)
     totals: dict[str, list[float]] = {}
-    for scene_id in tqdm(dataset.scene_ids, desc="scenes", unit="scene"):
-        positions = select_input_views(args.input_views, dataset.num_views(scene_id))
-        for row in dataset.read_scene(scene_id, views=positions):
-            (frame,) = frames_for_model([decode_frame(row, categories, source=dataset.source(scene_id))], cfg.data.max_size)
-            if len(frame.boxes):
-                for name, values in frame_ious(model, frame).items():
-                    totals.setdefault(name, []).extend(values)
+    for frame, _ in input_frames(args, cfg.data.max_size):
+        for name, values in frame_ious(model, frame).items():
+            totals.setdefault(name, []).extend(values)
     print(f"| {args.data} ({args.split}, {args.input_views}) | mean mask IoU given the true box | objects |")
     print("|:---|:---:|:---:|")
     for name, values in totals.items():

@@ -11,19 +11,13 @@ holds the Chamfer back.
 """
 from __future__ import annotations
 
-import argparse
-
 import torch
-from tqdm import tqdm
 
-from usl.data.frames import CategoryIndex, decode_frame
-from usl.engine.eval_model import frames_for_model, load_checkpoint_model
+from diagnostic_inputs import input_frames, load_model, parse_args
 from usl.engine.eval_targets import true_meshes_in_camera
-from usl.engine.eval_views import select_input_views
 from usl.geometry import Meshes
 from usl.geometry.sampling import sample_points_from_meshes
 from usl.metrics.shape3d import NUM_EVAL_SAMPLES, chamfer_f1
-from usl.records import RecordsDataset
 
 Tensor = torch.Tensor
 
@@ -54,26 +48,14 @@ def frame_scores(model, frame, objects, generator: torch.Generator) -> dict[str,
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("data", help="records folder")
-    parser.add_argument("checkpoint", help="run folder or checkpoint file")
-    parser.add_argument("--split", default="train")
-    parser.add_argument("--input-views", default="every:8")
-    args = parser.parse_args()
-    model, cfg = load_checkpoint_model(args.checkpoint, "cpu")
-    model.eval()
-    dataset = RecordsDataset(args.data, args.split)
-    categories = CategoryIndex(dataset.categories)
+    args = parse_args(__doc__.splitlines()[0])
+    model, cfg = load_model(args)
     generator = torch.Generator().manual_seed(0)
     totals: dict[str, list[Tensor]] = {}
-    for scene_id in tqdm(dataset.scene_ids, desc="scenes", unit="scene"):
-        objects = dataset.read_objects(scene_id)
-        positions = select_input_views(args.input_views, dataset.num_views(scene_id))
-        for row in dataset.read_scene(scene_id, views=positions):
-            (frame,) = frames_for_model([decode_frame(row, categories, source=dataset.source(scene_id))], cfg.data.max_size)
-            if objects and len(frame.boxes):
-                for name, (chamfer, f1) in frame_scores(model, frame, objects, generator).items():
-                    totals.setdefault(name, []).append(torch.stack([chamfer, f1], dim=1))
+    for frame, objects in input_frames(args, cfg.data.max_size):
+        if objects:
+            for name, (chamfer, f1) in frame_scores(model, frame, objects, generator).items():
+                totals.setdefault(name, []).append(torch.stack([chamfer, f1], dim=1))
     print(f"| {args.data} ({args.split}, {args.input_views}), true boxes | Ch. ↓ | F1@0.1 | objects |")
     print("|:---|:---:|:---:|:---:|")
     for name, values in totals.items():
