@@ -38,6 +38,8 @@ def aligned_scores(pred: Tensor, true: Tensor) -> dict[str, tuple[Tensor, Tensor
 def frame_scores(model, frame, objects, generator: torch.Generator) -> dict[str, tuple[Tensor, Tensor]]:
     true_meshes = true_meshes_in_camera(objects, frame.cam_to_world)
     keep = [i for i, iid in enumerate(frame.instance_ids.tolist()) if iid in true_meshes]
+    if not keep:
+        return {}
     _, features = model._backbone([frame])
     verts = model.objects(features, [frame.boxes[keep]], [frame.labels[keep]], [frame.K]).verts_cam
     pred = Meshes.from_shared_topology(verts, model.faces)

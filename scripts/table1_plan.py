@@ -57,7 +57,7 @@ TRAINED = tuple(r for r in ROWS if r.trained)
 # iterations, usl5 880 s, usl5_vertalign 764-775 s, usl5_no_dist 679-724 s, meshrcnn_3d 784-797 s.
 # Runs of the output folder replace them (their train_time.txt).
 MEASURED_SECONDS_PER_ITER = {"usl2": 0.76, "usl5": 1.47, "usl5_vertalign": 1.28, "usl5_no_dist": 1.17, "meshrcnn_3d": 1.32}
-TRAIN_START_SECONDS = 10.0  # usl-train's start-up and final checkpoint (20 iterations' CPU less 20 x the above)
+TRAIN_START_SECONDS = 10.0  # usl-train's start-up and final checkpoint; the figures above include it already, so ~10 s per run too many
 # usl-eval --rows model (10k points per mesh, 2 pictures): start-up, and per input view; from
 # 9.0 s CPU for 8 input views and 32.7 s for 64 (the quick held-out build, every:8 and all).
 # The periodic validation during training (val.period) is not counted.
