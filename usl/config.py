@@ -35,6 +35,30 @@ CONFIG_DIR = Path(__file__).resolve().parent / "configs"
 
 
 @dataclass
+class ColorJitterConfig:
+    """Random photometric changes of the input image only (``usl.data.photometric``; PIL's
+    ``ImageEnhance`` and torchvision's ``ColorJitter`` definitions), each factor drawn uniformly per
+    sample. The loss's targets are masks and poses, which colour does not change, so the views'
+    geometry stays exact. All 0 (the paper): the image is untouched."""
+
+    brightness: float = 0.0  # blend with black by a factor in [1 - b, 1 + b]
+    contrast: float = 0.0  # blend with the image's mean grey by a factor in [1 - c, 1 + c]
+    saturation: float = 0.0  # blend with the image's grey version by a factor in [1 - s, 1 + s]
+    hue: float = 0.0  # HSV hue turned by an angle in [-h, h] turns (0.5: any hue)
+
+    def __post_init__(self) -> None:
+        for name in ("brightness", "contrast", "saturation"):
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                raise ConfigError(f"data.color_jitter.{name} must be in [0, 1], got {getattr(self, name)}")
+        if not 0.0 <= self.hue <= 0.5:
+            raise ConfigError(f"data.color_jitter.hue must be in [0, 0.5], got {self.hue}")
+
+    @property
+    def enabled(self) -> bool:
+        return any((self.brightness, self.contrast, self.saturation, self.hue))
+
+
+@dataclass
 class DataConfig:
     root: str = ""  # records folder (DESIGN.md §3)
     train_split: str = "train"  # split the model trains on
@@ -47,6 +71,9 @@ class DataConfig:
     # Probability of mirroring a training sample left-right: all its views, as one reflection of
     # the world (usl.data.mirror), so the multi-view geometry stays exact. 0: never (the paper).
     flip_prob: float = 0.0
+    # Random brightness, contrast, saturation and hue of the input image (ColorJitterConfig). Off:
+    # the paper; on Scene-Shapes, whose colours are random already, it measured no gain (README).
+    color_jitter: ColorJitterConfig = field(default_factory=ColorJitterConfig)
     num_workers: int = 2  # data loader processes (0: load in the training process)
     verify: str = "size"  # shard checks on open: "size" (a stat) or "sha256" (reads each shard once more)
 
