@@ -35,17 +35,38 @@ def test_hue_follows_colorsys():
         assert out == pytest.approx(colorsys.hsv_to_rgb((h + 0.2) % 1.0, s, v), abs=1e-5)
 
 
+def _pil_case(seed: int = 3) -> tuple[np.ndarray, torch.Tensor]:
+    """An 8-bit image with unequal channel means (so the luma mean, the RGB mean and 0.5 differ by
+    tens of levels), and the same as a float tensor."""
+    rng = np.random.default_rng(seed)
+    pixels = (rng.integers(0, 256, (16, 16, 3)) * np.array([1.0, 0.3, 0.1])).astype(np.uint8)
+    return pixels, torch.from_numpy(pixels).permute(2, 0, 1).float() / 255
+
+
+def _as_tensor(image: Image.Image) -> torch.Tensor:
+    return torch.from_numpy(np.asarray(image).astype(np.float32) / 255)
+
+
 @pytest.mark.parametrize("name, enhancer", [("brightness", ImageEnhance.Brightness), ("contrast", ImageEnhance.Contrast),
                                             ("saturation", ImageEnhance.Color)])
 @pytest.mark.parametrize("fraction", [-1.0, 0.6])
 def test_brightness_contrast_and_saturation_are_pils_image_enhance(name, enhancer, fraction):
-    """On an 8-bit image, PIL's enhancer at the same factor (PIL rounds its mean grey and every
-    result to 8 bits, hence the tolerance of two levels)."""
-    pixels = np.random.default_rng(3).integers(0, 256, (16, 16, 3), dtype=np.uint8)
-    image = torch.from_numpy(pixels).permute(2, 0, 1).float() / 255
+    """PIL's enhancer at the same factor (PIL rounds its mean grey and every result to 8 bits)."""
+    pixels, image = _pil_case()
     got = jitter_colors(image, ColorJitterConfig(**{name: 0.5}), _Fixed(fraction))
-    want = np.asarray(enhancer(Image.fromarray(pixels)).enhance(1.0 + 0.5 * fraction)).astype(np.float32) / 255
-    torch.testing.assert_close(got.permute(1, 2, 0), torch.from_numpy(want), atol=2.01 / 255, rtol=0)
+    want = _as_tensor(enhancer(Image.fromarray(pixels)).enhance(1.0 + 0.5 * fraction))
+    torch.testing.assert_close(got.permute(1, 2, 0), want, atol=1.1 / 255, rtol=0)
+
+
+def test_the_three_enhancements_chain_in_order():
+    """Brightness, then contrast on the brightened image, then saturation on that: PIL's enhancers
+    chained (each rounds to 8 bits, so the tolerance grows to four levels)."""
+    pixels, image = _pil_case(4)
+    got = jitter_colors(image, ColorJitterConfig(brightness=0.4, contrast=0.4, saturation=0.4), _Fixed(0.5))
+    want = Image.fromarray(pixels)
+    for enhancer in (ImageEnhance.Brightness, ImageEnhance.Contrast, ImageEnhance.Color):
+        want = enhancer(want).enhance(1.2)
+    torch.testing.assert_close(got.permute(1, 2, 0), _as_tensor(want), atol=4.0 / 255, rtol=0)
 
 
 def test_no_jitter_is_the_identity_and_pure_red_turns_green():
@@ -78,7 +99,7 @@ def test_jittered_sample_changes_only_its_input_image(synthetic_root):
         torch.testing.assert_close(jittered[SampleKey(index, 1)].frame.image, b.frame.image, atol=0, rtol=0)  # reproducible
 
 
-@pytest.mark.parametrize("key, value", [("brightness", 1.5), ("saturation", -0.1), ("hue", 0.6)])
+@pytest.mark.parametrize("key, value", [("brightness", 1.5), ("contrast", 1.01), ("saturation", -0.1), ("hue", 0.6)])
 def test_jitter_outside_its_range_is_an_error(key, value):
     with pytest.raises(ConfigError, match=f"data.color_jitter.{key}"):
         ColorJitterConfig(**{key: value})
