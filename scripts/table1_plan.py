@@ -51,13 +51,13 @@ ROWS = (
 )
 TRAINED = tuple(r for r in ROWS if r.trained)
 
-# CPU seconds (one thread) per iteration, start-up included, measured on this project's 2-core
-# machine with two runs side by side: `bash scripts/table1.sh --iters 600 --seeds 0,1` with tiny's
-# wider blur radius (runs/table1_600/progress.log, 2026-12-01): usl2 438-488 s CPU for 600
-# iterations, usl5 880 s, usl5_vertalign 764-775 s, usl5_no_dist 679-724 s, meshrcnn_3d 784-797 s.
-# Runs of the output folder replace them (their train_time.txt).
+# CPU seconds (one thread) per iteration, usl-train's start-up and final checkpoint included,
+# measured on this project's 2-core machine with two runs side by side: `bash scripts/table1.sh
+# --iters 600 --seeds 0,1` with tiny's wider blur radius (runs/table1_600/progress.log,
+# 2026-12-01): usl2 438-488 s CPU for 600 iterations, usl5 880 s, usl5_vertalign 764-775 s,
+# usl5_no_dist 679-724 s, meshrcnn_3d 784-797 s. Runs of the output folder replace them (their
+# train_time.txt).
 MEASURED_SECONDS_PER_ITER = {"usl2": 0.76, "usl5": 1.47, "usl5_vertalign": 1.28, "usl5_no_dist": 1.17, "meshrcnn_3d": 1.32}
-TRAIN_START_SECONDS = 10.0  # usl-train's start-up and final checkpoint; the figures above include it already, so ~10 s per run too many
 # usl-eval --rows model (10k points per mesh, 2 pictures): start-up, and per input view; from
 # 9.0 s CPU for 8 input views and 32.7 s for 64 (the quick held-out build, every:8 and all).
 # The periodic validation during training (val.period) is not counted.
@@ -133,7 +133,7 @@ def plan(config: str, iters: int | None, seeds: Sequence[int], jobs: int, out: P
          data: str = "", eval_views: int = 48) -> str:
     """Write ``out/plan.tsv``; return the budget text to print. ``data``: the builds and the
     evaluation protocol, recorded with the budget; ``eval_views``: input views each run is scored on."""
-    per_run = TRAIN_START_SECONDS + EVAL_START_SECONDS + eval_views * EVAL_SECONDS_PER_VIEW
+    per_run = EVAL_START_SECONDS + eval_views * EVAL_SECONDS_PER_VIEW  # training start-up is in the rates
     recipe = load_config(config)
     iters = iters or recipe.optim.max_iter
     budget = budget_overrides(recipe, iters) + list(extra)
@@ -157,7 +157,7 @@ def plan(config: str, iters: int | None, seeds: Sequence[int], jobs: int, out: P
         f"{iters} iterations ({runs * iters:,} in all), recipe {config}, {jobs} at a time with 1 thread each",
         f"  overrides of every run: {' '.join(budget)}",
         f"  seconds per iteration: {', '.join(rates) or '-'} (measured, see scripts/table1_plan.py), "
-        f"plus ~{per_run:.0f} s per run for start-up and scoring {eval_views} held-out input views",
+        f"plus ~{per_run:.0f} s per run for scoring {eval_views} held-out input views",
         f"  estimated time: {duration(cost / max(jobs, 1))} on {jobs} idle cores, not counting the builds and runs already done",
     ]
     text += [f"  {s}" for s in skipped]
