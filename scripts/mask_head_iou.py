@@ -6,6 +6,12 @@ the ellipse inscribed in the box (what a sphere in the box's frustum projects to
 head, trained with Mask R-CNN's dense 2D loss on the same images, does no better than the ellipse,
 the image features are the limit, not the shape head or its loss.
 
+The meshes are also scored as usl-eval scores them, all drawn together (each its visible part),
+and drawn together in the TRUE occlusion order (where several meshes cover a pixel of one
+object's true mask, that object wins). The gap between "together" and "alone" is what occlusion
+costs; the part of it that the true order wins back is depth ordering, the rest is meshes
+spilling over their neighbours' visible pixels.
+
     python3 scripts/mask_head_iou.py HELDOUT_BUILD RUN_OR_CHECKPOINT [--split train] [--input-views every:8]
 """
 from __future__ import annotations
@@ -29,6 +35,21 @@ def inscribed_ellipses(boxes: Tensor, height: int, width: int) -> Tensor:
         (v - centre[:, 1, None, None]) / half[:, 1, None, None]) ** 2 <= 1
 
 
+def composite(depth: Tensor, true_masks: Tensor | None = None) -> Tensor:
+    """(N, H, W) visible masks of N meshes drawn together, from their depth maps drawn alone.
+
+    The nearest mesh wins a pixel; with ``true_masks`` (disjoint visible masks), a covering mesh
+    whose object truly owns the pixel wins it instead, whatever its depth (the true order).
+    """
+    covered = torch.isfinite(depth)
+    key = depth.clone()
+    if true_masks is not None:
+        key = torch.where(covered & true_masks, -torch.inf, key)
+    winner = key.argmin(0)
+    ids = torch.arange(depth.shape[0])[:, None, None]
+    return covered.any(0) & (winner == ids)
+
+
 @torch.no_grad()
 def frame_ious(model, frame) -> dict[str, list[float]]:
     _, features = model._backbone([frame])
@@ -39,11 +60,15 @@ def frame_ious(model, frame) -> dict[str, list[float]]:
     height, width = frame.size
     one_mesh = torch.zeros(len(model.faces), dtype=torch.long)
     # each mesh alone: rendered together they would occlude each other
-    meshes = torch.stack([rasterize_hard(v, model.faces, one_mesh, frame.K, height, width, num_meshes=1).masks[0] for v in verts])
+    alone = [rasterize_hard(v, model.faces, one_mesh, frame.K, height, width, num_meshes=1) for v in verts]
+    meshes = torch.stack([r.masks[0] for r in alone])
+    depth = torch.stack([r.depth_map for r in alone])  # (N, H, W), +inf where a mesh is absent
     true, nan = frame.masks.bool(), float("nan")
     return {
         "mask head": mask_iou(mask_head.bool(), true, nan).tolist(),
         "mesh (no occlusion)": mask_iou(meshes.bool(), true, nan).tolist(),
+        "meshes together (usl-eval)": mask_iou(composite(depth), true, nan).tolist(),
+        "meshes together, true order": mask_iou(composite(depth, true), true, nan).tolist(),
         "inscribed ellipse": mask_iou(inscribed_ellipses(frame.boxes, height, width), true, nan).tolist(),
     }
 
