@@ -73,10 +73,6 @@ def test_recipes_and_combination():
     halved = LossWeights(mu_reg=0.5, mu_3d=2.0)
     total, _ = combine_losses(halved, l3d=one, detection={}, offset_l2=one)
     assert total.item() == pytest.approx(2 + 0.5 * 0.05)
-    total, parts = combine_losses(LossWeights(mu_reg=0.5, order=3.0), l3d=one, detection={}, offset_l2=one, order=2 * one)
-    assert parts["order"].item() == 6.0 and total.item() == pytest.approx(1 + 0.5 * 0.05 + 6)  # mu_reg leaves order alone
-    with pytest.raises(ValueError, match="order"):
-        combine_losses(LossWeights(order=1.0), l3d=one, detection={}, offset_l2=one)
     with pytest.raises(ValueError, match="laplacian"):
         combine_losses(LossWeights.recipe("scannet"), l3d=one, detection={}, offset_l2=one)
     with pytest.raises(ValueError, match="detection"):

@@ -2,8 +2,7 @@
 
 Here L_2D is Mask R-CNN's detection losses (RPN and box head), L_3D the mean of the
 per-pair ``l2d_loss`` over objects and views, and
-``L_reg = edge * L_edge + offset_l2 * ½‖dV‖² + laplacian * L_laplac``; ``order * l_order``
-(``usl.losses.occlusion_order``, not in the paper, 0 in its recipes) is added beside them. Inside L_3D,
+``L_reg = edge * L_edge + offset_l2 * ½‖dV‖² + laplacian * L_laplac``. Inside L_3D,
 ``dist`` weighs l_dist (``l_2D = dist * l_dist + 1[IoU > t] l_xent``): 0 is Table 1's "w/o l_dist".
 
 The paper's recipes (``LossWeights.recipe(name)``):
@@ -35,9 +34,6 @@ class LossWeights:
     # l_dist inside L_3D (times loss.dist_scale and loss.dist_schedule). 0 is Table 1's "w/o
     # l_dist": l_dist is not computed at all, so it adds exactly no gradient
     dist: float = 1.0
-    # l_order, the depth order the true (visible) masks imply where predicted meshes overlap; not
-    # in the paper (0 in its recipes). In metres times a mask fraction, per (object, view) pair.
-    order: float = 0.0
 
     @classmethod
     def recipe(cls, dataset: str) -> LossWeights:
@@ -59,14 +55,13 @@ def combine_losses(
     edge: Tensor | None = None,
     offset_l2: Tensor | None = None,
     laplacian: Tensor | None = None,
-    order: Tensor | None = None,
 ) -> tuple[Tensor, dict[str, Tensor]]:
     """Weighted sum of the objective's terms.
 
     A term may be None only if its weight is zero (the caller then need not compute it);
     a non-zero weight without its term is an error, so a recipe cannot silently lose a term.
     Returns the total and a dict of the weighted parts (for logging), keyed
-    ``"det/<name>"``, ``"l3d"``, ``"edge"``, ``"offset_l2"``, ``"laplacian"``, ``"order"``.
+    ``"det/<name>"``, ``"l3d"``, ``"edge"``, ``"offset_l2"``, ``"laplacian"``.
     """
     parts: dict[str, Tensor] = {}
     if weights.mu_2d:
@@ -75,8 +70,8 @@ def combine_losses(
         for name, value in detection.items():
             parts[f"det/{name}"] = weights.mu_2d * value
     parts["l3d"] = weights.mu_3d * l3d
-    for name, term in (("edge", edge), ("offset_l2", offset_l2), ("laplacian", laplacian), ("order", order)):
-        weight = getattr(weights, name) * (1.0 if name == "order" else weights.mu_reg)
+    for name, term in (("edge", edge), ("offset_l2", offset_l2), ("laplacian", laplacian)):
+        weight = weights.mu_reg * getattr(weights, name)
         if not weight:
             continue
         if term is None:

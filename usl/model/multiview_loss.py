@@ -35,8 +35,7 @@ from usl.losses import (
     silhouette_bce_loss,
     silhouette_chamfer_loss,
 )
-from usl.losses.occlusion_order import OcclusionOrder, occlusion_order_loss
-from usl.render import rasterize_hard, render_dynamic
+from usl.render import render_dynamic
 
 Tensor = torch.Tensor
 
@@ -55,27 +54,22 @@ class _Pairs:
     weight: list[Tensor]  # (n,) 1 / (pairs of the sample's image) / batch size
     is_input: list[Tensor]  # (n,) bool, the pair's view is the input view
     occluders: list[Tensor]  # n masks (H_j, W_j): other objects' pixels (loss.ignore_occluders)
-    order: list[Tensor]  # (n,) l_order per pair (loss.weights.order > 0)
-    stolen: list[Tensor]  # (n,) fraction of the true mask another mesh wins in the z-buffer
 
 
 class SilhouetteLoss(NamedTuple):
-    """L_3D = dist + xent, its two weighted parts (kept apart for gradient diagnostics), l_order
-    averaged like L_3D (zero unless ``loss.weights.order > 0``; weighted by the caller), and
+    """L_3D = dist + xent, its two weighted parts (kept apart for gradient diagnostics), and
     detached statistics: mean l_dist, mean l_xent, l_xent without BCE's clamp mass
     (``l_xent_reached``), the fraction of true pixels no face reaches (``unreached``), the
     fraction of pairs the IoU gate lets into l_xent (``xent_gate``), the fraction of other-view
     pairs above the IoU threshold whatever the gate mode (``iou_pass_views``: the pairs a gated
     l_xent can reach, hence the only ones that move z and rho without l_dist), the soft
     silhouettes' mean IoU in the input view and in the other views (``iou_input``,
-    ``iou_views``: the training-side counterparts of usl-eval's Mask IoU without occlusion),
-    l_dist's current factor, and with l_order the mean fraction of each true mask that another
-    mesh wins when all are z-buffered together (``order_stolen``)."""
+    ``iou_views``: the training-side counterparts of usl-eval's Mask IoU without occlusion) and
+    l_dist's current factor."""
 
     l3d: Tensor
     dist: Tensor
     xent: Tensor
-    order: Tensor
     stats: dict[str, Tensor]
 
 
@@ -86,25 +80,21 @@ def multiview_silhouette_loss(
     counts: list[int],
     cfg: LossConfig,
     iteration: int = 0,
-    order_verts_cam: Tensor | None = None,
 ) -> SilhouetteLoss:
     """L_3D for a batch. ``verts_cam`` (N, V, 3) are all objects' meshes in their input camera's
     frame, sample by sample (``counts[i]`` objects for sample i, in ``object_rows`` order).
     ``iteration`` sets l_dist's factor ``cfg.weights.dist * cfg.dist_scale * cfg.dist_schedule(iteration)``.
-    ``order_verts_cam``: the same meshes as l_order differentiates them (default ``verts_cam``;
-    the model passes them with the shape detached).
     """
     verts_cam = verts_cam.float()
-    order_verts_cam = verts_cam if order_verts_cam is None else order_verts_cam.float()
-    pairs = _Pairs(*([] for _ in range(12)))
+    pairs = _Pairs([], [], [], [], [], [], [], [], [], [])
     starts = torch.tensor([0] + counts).cumsum(0).tolist()
     for index, sample in enumerate(samples):
-        rows = slice(starts[index], starts[index + 1])
-        if starts[index + 1] > starts[index]:
-            _gather_pairs(verts_cam[rows], order_verts_cam[rows], faces, sample, cfg, len(samples), pairs)
+        verts = verts_cam[starts[index] : starts[index + 1]]
+        if len(verts):
+            _gather_pairs(verts, faces, sample, cfg, len(samples), pairs)
     if not pairs.verts:
         zero = verts_cam.sum() * 0.0
-        return SilhouetteLoss(zero, zero, zero, zero, {})
+        return SilhouetteLoss(zero, zero, zero, {})
     verts, K = torch.cat(pairs.verts), torch.cat(pairs.K)
     dist_factor = cfg.weights.dist * cfg.dist_scale * cfg.dist_schedule(iteration)
     if dist_factor:
@@ -132,7 +122,6 @@ def multiview_silhouette_loss(
     weight = torch.cat(pairs.weight)
     l3d = (l2d_loss(dist_factor * dist, xent) * weight).sum()
     dist_part = (dist_factor * dist * weight).sum()  # the gated l_xent part is the rest of l_2D
-    order = (torch.cat(pairs.order) * weight).sum() if pairs.order else verts.new_zeros(())
     stats = {
         **({"l_dist": dist.detach().mean()} if dist_factor else {}),
         "l_xent": xent.loss.detach().mean(),
@@ -142,13 +131,12 @@ def multiview_silhouette_loss(
         "iou_input": xent.iou[is_input].mean(),
         **other_views,
         "dist_factor": torch.tensor(dist_factor),
-        **({"l_order": torch.cat(pairs.order).detach().mean(), "order_stolen": torch.cat(pairs.stolen).mean()} if pairs.order else {}),
     }
-    return SilhouetteLoss(l3d, dist_part, l3d - dist_part, order, stats)
+    return SilhouetteLoss(l3d, dist_part, l3d - dist_part, stats)
 
 
 def _gather_pairs(
-    verts: Tensor, order_verts: Tensor, faces: Tensor, sample: MultiViewSample, cfg: LossConfig, batch_size: int, pairs: _Pairs
+    verts: Tensor, faces: Tensor, sample: MultiViewSample, cfg: LossConfig, batch_size: int, pairs: _Pairs
 ) -> None:
     generator = torch.Generator(device=verts.device).manual_seed(sample.seed)
     surface = sample_points_from_meshes(Meshes.from_shared_topology(verts, faces), cfg.mesh_points, generator)
@@ -172,22 +160,6 @@ def _gather_pairs(
         pairs.is_input.append(torch.full((len(present),), position == 0, device=verts.device))
         if cfg.ignore_occluders:
             pairs.occluders.extend((view.masks.any(dim=0) & ~masks).unbind(0))
-        if cfg.weights.order:
-            order = _occlusion_order(transform_points(order_verts[present], to_view), faces, masks, view.K.float(), cfg.order_margin)
-            pairs.order.append(order.loss)
-            pairs.stolen.append(order.stolen)
-
-
-def _occlusion_order(verts: Tensor, faces: Tensor, masks: Tensor, K: Tensor, margin: float) -> OcclusionOrder:
-    """l_order of one view's present objects, each mesh z-buffered alone at the view's resolution."""
-    num_objects = verts.shape[0]
-    packed = Meshes.from_shared_topology(verts.detach(), faces)
-    drawn = rasterize_hard(
-        packed.verts_packed(), packed.faces_packed(), packed.faces_packed_to_mesh_idx(), K.expand(num_objects, 3, 3),
-        masks.shape[-2], masks.shape[-1], mesh_view=torch.arange(num_objects, device=verts.device),
-    )
-    local_faces = torch.where(drawn.face_map >= 0, drawn.face_map % faces.shape[0], -1)
-    return occlusion_order_loss(verts, faces, local_faces, drawn.depth_map, masks.bool(), K, margin)
 
 
 def shape_regularizers(

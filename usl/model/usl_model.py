@@ -50,10 +50,6 @@ class ObjectOutputs:
         cast = [cube_to_frustum(v.float(), self.boxes, self.K, self.layout.z, self.layout.rho) for v in self.shape.stage_verts[:-1]]
         return cast + [self.verts_cam]
 
-    def layout_verts_cam(self) -> Tensor:
-        """``verts_cam`` with the shape detached: gradients through it reach the layout (z, rho) only."""
-        return cube_to_frustum(self.shape.verts.detach().float(), self.boxes, self.K, self.layout.z, self.layout.rho)
-
 
 class USLModel(nn.Module):
     """``load_init_weights=False`` skips ``cfg.init_weights``, for callers that load a full state dict next."""
@@ -151,18 +147,17 @@ class USLModel(nn.Module):
             [s.frame.K for s in samples],
         )
         with _autocast_off(outputs.verts_cam):
-            order = None  # l_order comes with the silhouette loss's (object, view) pairs
             if self.loss_cfg.supervision == "3d":
                 l3d, stats = mesh_supervision_loss(
                     outputs.stage_verts_cam(), self.faces, samples, outputs.counts, self.loss_cfg.mesh3d
                 )
             else:
-                l3d, order, stats = self._silhouette_loss(outputs, samples, iteration, diagnostics)
+                l3d, stats = self._silhouette_loss(outputs, samples, iteration, diagnostics)
             need = {name: bool(getattr(weights, name) * weights.mu_reg) for name in ("edge", "offset_l2", "laplacian")}
             regs = shape_regularizers(outputs.shape.verts, outputs.shape.offsets, self.faces, outputs.counts, need)
             # Keep both heads in the graph even for a batch without objects (DDP needs every gradient).
             l3d = l3d + 0.0 * (outputs.layout.z.sum() + outputs.layout.rho.sum() + outputs.shape.verts.sum())
-            total, parts = combine_losses(weights, l3d, detection, order=order if weights.order else None, **regs)
+            total, parts = combine_losses(weights, l3d, detection, **regs)
         parts["loss"] = total
         parts.update({f"stat/{k}": v for k, v in stats.items()})
         if outputs.counts and sum(outputs.counts):
@@ -172,14 +167,9 @@ class USLModel(nn.Module):
 
     def _silhouette_loss(
         self, outputs: ObjectOutputs, samples: list[MultiViewSample], iteration: int, diagnostics: bool
-    ) -> tuple[Tensor, Tensor, dict[str, Tensor]]:
-        """The paper's multi-view L_3D, l_order and their statistics (with gradient diagnostics when asked)."""
-        # l_order says where an object lies relative to the others, not what shape it has: it moves
-        # the layout only (letting it deform the meshes cost held-out shape quality, README)
-        order_verts = outputs.layout_verts_cam() if self.loss_cfg.weights.order else None
-        silhouette = multiview_silhouette_loss(
-            outputs.verts_cam, self.faces, samples, outputs.counts, self.loss_cfg, iteration, order_verts
-        )
+    ) -> tuple[Tensor, dict[str, Tensor]]:
+        """The paper's multi-view L_3D and its statistics (with gradient diagnostics when asked)."""
+        silhouette = multiview_silhouette_loss(outputs.verts_cam, self.faces, samples, outputs.counts, self.loss_cfg, iteration)
         stats = dict(silhouette.stats)
         if diagnostics:
             stats.update(_gradient_norms(outputs.shape.verts, {"dist": silhouette.dist, "xent": silhouette.xent}))
@@ -189,9 +179,7 @@ class USLModel(nn.Module):
             stats.update(_gradient_norms(outputs.layout.rho, {"rho": silhouette.l3d}))
             if stats["grad_xent"] > 0:  # no ratio while the gate keeps every pair out of l_xent
                 stats["grad_ratio"] = stats["grad_dist"] / stats["grad_xent"]
-            if self.loss_cfg.weights.order:
-                stats.update(_gradient_norms(outputs.layout.z, {"z_order": self.loss_cfg.weights.order * silhouette.order}))
-        return silhouette.l3d, silhouette.order, stats
+        return silhouette.l3d, stats
 
     # ------------------------------------------------------------------ inference
     @torch.no_grad()

@@ -39,15 +39,12 @@ class HardRender:
     masks: (M, H, W) bool visible (occlusion-aware) mask of each mesh in its own view.
     nearest_depth: (M,) smallest depth over each mesh's visible pixels, NaN when it has none
         (the records' ``depth_min`` convention).
-    face_map: (B, H, W) long index into ``faces`` of the nearest face, -1 for background (a
-        differentiable depth can be recomputed from it, as from PyTorch3D's ``pix_to_face``).
     """
 
     instance_map: Tensor
     depth_map: Tensor
     masks: Tensor
     nearest_depth: Tensor
-    face_map: Tensor
 
 
 @torch.no_grad()
@@ -119,7 +116,6 @@ def rasterize_hard(
     nearest = torch.full((num_meshes,), torch.inf, dtype=verts.dtype, device=verts.device)
     nearest = nearest.scatter_reduce_(0, instance.reshape(-1)[covered], zbuf[covered], "amin")
     nearest = torch.where(torch.isinf(nearest), torch.full_like(nearest, torch.nan), nearest)
-    face_map = fbuf.view(num_views, height, width)
     if single_view:
-        instance, depth_map, face_map = instance[0], depth_map[0], face_map[0]
-    return HardRender(instance_map=instance, depth_map=depth_map, masks=masks, nearest_depth=nearest, face_map=face_map)
+        instance, depth_map = instance[0], depth_map[0]
+    return HardRender(instance_map=instance, depth_map=depth_map, masks=masks, nearest_depth=nearest)
