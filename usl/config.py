@@ -110,10 +110,6 @@ class LayoutHeadConfig:
     # height): RoIAlign resamples every box to the same grid, so the pooled features lose the
     # apparent size and image height that tell depth apart. Not in the paper (False there).
     box_geometry: bool = False
-    # Also feed each object the mean, over the objects of its image, of that same input (pooled
-    # features, and the box geometry when on): depth order is relative, and a head that sees one
-    # RoI at a time cannot compare an object with its neighbours. Not in the paper (False there).
-    scene_context: bool = False
 
 
 @dataclass

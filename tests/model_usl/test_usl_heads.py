@@ -8,7 +8,7 @@ from usl.geometry import cube_to_frustum, ico_sphere, unique_edges
 from usl.geometry.cameras import project
 from usl.model.heads import GraphConv, LayoutHead, ShapeHead, project_cube_to_image, roimap_features, vertalign_features
 from usl.model.backbone import ShapeSpec
-from usl.model.heads.layout import box_geometry, image_means
+from usl.model.heads.layout import box_geometry
 from usl.model.heads.vertex_features import single_level_pooler
 
 RANGE = LayoutRange(z0=1.0, z1=5.0, rho0=0.2, rho1=2.0)
@@ -95,34 +95,6 @@ def test_layout_head_sees_the_box_only_with_box_geometry():
         torch.nn.init.normal_(head.z_pred.weight, std=1.0)
         z = [head(feats[:1], labels[:1], box, K_SIMPLE[None]).z for box in (near_box, far_box)]
         assert (z[0] != z[1]).item() is enabled
-
-
-def test_image_means_average_each_images_rows():
-    x = torch.randn(6, 5)
-    got = image_means(x, [2, 0, 3, 1])
-    want = torch.cat([x[:2].mean(0).expand(2, 5), x[2:5].mean(0).expand(3, 5), x[5:]])
-    torch.testing.assert_close(got, want)
-
-
-def test_scene_context_lets_an_object_see_its_own_images_objects_only():
-    torch.manual_seed(0)
-    feats, labels = torch.randn(5, 8, 7, 7), torch.tensor([0, 1, 2, 0, 1])
-    boxes = torch.tensor([[10.0, 12.0, 40.0, 50.0]]).expand(5, 4).clone() + torch.arange(5.0)[:, None]
-    K = K_SIMPLE.expand(5, 3, 3)
-    for enabled in (False, True):
-        head = LayoutHead(8, 3, LayoutHeadConfig(fc_dim=16, box_geometry=True, scene_context=enabled), RANGE)
-        assert head.mlp[0].in_features == (8 + 6) * (2 if enabled else 1)
-        torch.nn.init.normal_(head.z_pred.weight, std=1.0)
-        z = head(feats, labels, boxes, K, [2, 3]).z
-        # another object in the second image changes the first object of that image only with context
-        changed = feats.clone()
-        changed[4] = torch.randn(8, 7, 7)
-        z_changed = head(changed, labels, boxes, K, [2, 3]).z
-        assert torch.equal(z_changed[:2], z[:2])  # the first image never sees the second
-        assert (z_changed[2] != z[2]).item() is enabled
-        # objects reordered within an image: the same predictions, reordered
-        order = torch.tensor([1, 0, 4, 2, 3])
-        torch.testing.assert_close(head(feats[order], labels[order], boxes[order], K, [2, 3]).z, z[order])
 
 
 def test_cube_projection_equals_the_frustum_homography_projection():

@@ -29,15 +29,6 @@ def box_geometry(boxes: Tensor, K: Tensor) -> Tensor:
     return torch.cat([rays.reshape(-1, 4), size.log()], dim=1)
 
 
-def image_means(x: Tensor, counts: list[int]) -> Tensor:
-    """(N, D): each row of ``x`` (N, D) replaced by the mean of the rows of its image (``counts``
-    consecutive rows per image)."""
-    sizes = torch.tensor(counts, device=x.device)
-    image = torch.repeat_interleave(torch.arange(len(counts), device=x.device), sizes)
-    sums = x.new_zeros(len(counts), x.shape[1]).index_add(0, image, x)
-    return (sums / sizes.clamp_min(1)[:, None].to(x.dtype))[image]
-
-
 @dataclass
 class LayoutPrediction:
     z: Tensor  # (N,) depth of the object centre, metres, in [z0, z1]
@@ -50,8 +41,7 @@ class LayoutHead(nn.Module):
     ``z = z0 + sigmoid(.) (z1 - z0)`` and ``rho = rho0 + sigmoid(.) (rho1 - rho0)``; like the box
     head's regressors, one output per category, picked by the object's label, so the head can
     learn per-category priors. The predictors start at zero: every object begins mid-range.
-    With ``cfg.box_geometry`` the MLP's input is the pooled features followed by :func:`box_geometry`;
-    with ``cfg.scene_context`` that input is followed by its mean over the objects of the same image.
+    With ``cfg.box_geometry`` the MLP's input is the pooled features followed by :func:`box_geometry`.
     """
 
     def __init__(self, in_channels: int, num_classes: int, cfg: LayoutHeadConfig, layout_range: LayoutRange):
@@ -59,7 +49,7 @@ class LayoutHead(nn.Module):
         if not (layout_range.z1 > layout_range.z0 > 0 and layout_range.rho1 > layout_range.rho0 > 0):
             raise ValueError(f"layout range must satisfy z1 > z0 > 0 and rho1 > rho0 > 0, got {layout_range}")
         layers: list[nn.Module] = []
-        width = (in_channels + (BOX_GEOMETRY_DIM if cfg.box_geometry else 0)) * (2 if cfg.scene_context else 1)
+        width = in_channels + (BOX_GEOMETRY_DIM if cfg.box_geometry else 0)
         for _ in range(cfg.num_fc):
             layers += [nn.Linear(width, cfg.fc_dim), nn.ReLU(inplace=True)]
             width = cfg.fc_dim
@@ -71,20 +61,14 @@ class LayoutHead(nn.Module):
             nn.init.zeros_(layer.bias)
         self.layout_range = layout_range
         self.box_geometry = cfg.box_geometry
-        self.scene_context = cfg.scene_context
 
-    def forward(
-        self, roi_features: Tensor, labels: Tensor, boxes: Tensor, K: Tensor, counts: list[int] | None = None
-    ) -> LayoutPrediction:
+    def forward(self, roi_features: Tensor, labels: Tensor, boxes: Tensor, K: Tensor) -> LayoutPrediction:
         """roi_features (N, C, P, P) pooled per object; labels (N,) contiguous category indices;
         boxes (N, 4) xyxy and K (N, 3, 3) the intrinsics of each object's image (used with
-        ``box_geometry`` only); counts: objects per image, in order (``scene_context`` only;
-        default: all N in one image)."""
+        ``box_geometry`` only)."""
         x = roi_features.mean(dim=(2, 3))
         if self.box_geometry:
             x = torch.cat([x, box_geometry(boxes.float(), K.float()).to(x.dtype)], dim=1)
-        if self.scene_context:
-            x = torch.cat([x, image_means(x, [len(x)] if counts is None else counts)], dim=1)
         x = self.mlp(x)
         rows = torch.arange(len(labels), device=labels.device)
         z_unit = torch.sigmoid(self.z_pred(x)[rows, labels].float())
