@@ -8,9 +8,10 @@ the image features are the limit, not the shape head or its loss.
 
 The meshes are also scored as usl-eval scores them, all drawn together (each its visible part),
 and drawn together in the TRUE occlusion order (where several meshes cover a pixel of one
-object's true mask, that object wins). The gap between "together" and "alone" is what occlusion
-costs; the part of it that the true order wins back is depth ordering, the rest is meshes
-spilling over their neighbours' visible pixels.
+object's true mask, that object wins). "Together" below "alone" is what a wrong depth order
+costs: a mesh drawn in front of the object that truly hides it takes that object's pixels. The
+true order scores above "alone" too, as an owner covering its pixels takes them back from the
+(amodal) meshes of the objects behind it, which "alone" counts against those meshes.
 
     python3 scripts/mask_head_iou.py HELDOUT_BUILD RUN_OR_CHECKPOINT [--split train] [--input-views every:8]
 """
