@@ -20,6 +20,7 @@ from __future__ import annotations
 import torch
 
 from diagnostic_inputs import input_frames, load_model, parse_args
+from usl.geometry import Meshes
 from usl.metrics.masks import mask_iou
 from usl.model.detector.mask_head import paste_masks_in_image, select_class_masks
 from usl.render import rasterize_hard
@@ -36,19 +37,21 @@ def inscribed_ellipses(boxes: Tensor, height: int, width: int) -> Tensor:
         (v - centre[:, 1, None, None]) / half[:, 1, None, None]) ** 2 <= 1
 
 
-def composite(depth: Tensor, true_masks: Tensor | None = None) -> Tensor:
-    """(N, H, W) visible masks of N meshes drawn together, from their depth maps drawn alone.
-
-    The nearest mesh wins a pixel; with ``true_masks`` (disjoint visible masks), a covering mesh
-    whose object truly owns the pixel wins it instead, whatever its depth (the true order).
-    """
+def true_order_masks(depth: Tensor, true_masks: Tensor) -> Tensor:
+    """(N, H, W) visible masks of N meshes drawn together in the true order, from their depth maps
+    drawn alone (+inf where absent): where a mesh covers a pixel of its own object's true mask
+    (the true masks are disjoint), it wins that pixel whatever its depth; elsewhere the nearest wins."""
     covered = torch.isfinite(depth)
-    key = depth.clone()
-    if true_masks is not None:
-        key = torch.where(covered & true_masks, -torch.inf, key)
-    winner = key.argmin(0)
-    ids = torch.arange(depth.shape[0])[:, None, None]
-    return covered.any(0) & (winner == ids)
+    winner = torch.where(covered & true_masks, -torch.inf, depth).argmin(0)
+    return covered.any(0) & (winner == torch.arange(depth.shape[0])[:, None, None])
+
+
+def draw(verts: Tensor, faces: Tensor, K: Tensor, height: int, width: int, together: bool):
+    """The z-buffer of N meshes (N, V, 3) in one view: all together (usl-eval's render) or each alone."""
+    meshes, n = Meshes.from_shared_topology(verts, faces), len(verts)
+    mesh_view = torch.zeros(n, dtype=torch.long) if together else torch.arange(n)
+    return rasterize_hard(meshes.verts_packed(), meshes.faces_packed(), meshes.faces_packed_to_mesh_idx(),
+                          K.expand(int(mesh_view.max()) + 1, 3, 3), height, width, mesh_view=mesh_view)
 
 
 @torch.no_grad()
@@ -59,17 +62,14 @@ def frame_ious(model, frame) -> dict[str, list[float]]:
     mask_head = paste_masks_in_image(select_class_masks(logits, frame.labels), frame.boxes, frame.size, heads.cfg.mask_threshold)
     verts = model.objects(features, [frame.boxes], [frame.labels], [frame.K]).verts_cam
     height, width = frame.size
-    one_mesh = torch.zeros(len(model.faces), dtype=torch.long)
-    # each mesh alone: rendered together they would occlude each other
-    alone = [rasterize_hard(v, model.faces, one_mesh, frame.K, height, width, num_meshes=1) for v in verts]
-    meshes = torch.stack([r.masks[0] for r in alone])
-    depth = torch.stack([r.depth_map for r in alone])  # (N, H, W), +inf where a mesh is absent
+    alone = draw(verts, model.faces, frame.K, height, width, together=False)  # one view per mesh
+    together = draw(verts, model.faces, frame.K, height, width, together=True)
     true, nan = frame.masks.bool(), float("nan")
     return {
         "mask head": mask_iou(mask_head.bool(), true, nan).tolist(),
-        "mesh (no occlusion)": mask_iou(meshes.bool(), true, nan).tolist(),
-        "meshes together (usl-eval)": mask_iou(composite(depth), true, nan).tolist(),
-        "meshes together, true order": mask_iou(composite(depth, true), true, nan).tolist(),
+        "mesh (no occlusion)": mask_iou(alone.masks, true, nan).tolist(),
+        "meshes together (usl-eval)": mask_iou(together.masks, true, nan).tolist(),
+        "meshes together, true order": mask_iou(true_order_masks(alone.depth_map, true), true, nan).tolist(),
         "inscribed ellipse": mask_iou(inscribed_ellipses(frame.boxes, height, width), true, nan).tolist(),
     }
 

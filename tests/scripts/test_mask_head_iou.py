@@ -1,0 +1,35 @@
+"""scripts/mask_head_iou.py: the true-order composite, against the z-buffer of the same meshes
+placed in that order (two spheres overlapping in the image, drawn with both depth orders)."""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "scripts"))
+
+import mask_head_iou  # noqa: E402
+from usl.geometry import ico_sphere  # noqa: E402
+
+K = torch.tensor([[60.0, 0.0, 32.0], [0.0, 60.0, 32.0], [0.0, 0.0, 1.0]])
+
+
+def _spheres(depth_a: float, depth_b: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """a and b of one radius, side by side, overlapping in the image, whatever their depths (a
+    sphere scaled with its depth about the camera projects to the same disc)."""
+    verts, faces = ico_sphere(2)
+    return torch.stack([(verts * 0.4 + torch.tensor([0.15, 0.0, 2.5])) * depth_a / 2.5,
+                        (verts * 0.4 + torch.tensor([-0.15, 0.0, 2.5])) * depth_b / 2.5]), faces
+
+
+def test_true_order_is_the_z_buffer_of_the_meshes_placed_in_that_order():
+    b_in_front, faces = _spheres(3.0, 2.5)
+    truth = mask_head_iou.draw(b_in_front, faces, K, 64, 64, together=True).masks  # b hides part of a
+    a_in_front, _ = _spheres(2.5, 3.0)  # the same silhouettes, the wrong order
+    wrong = mask_head_iou.draw(a_in_front, faces, K, 64, 64, together=True).masks
+    alone = mask_head_iou.draw(a_in_front, faces, K, 64, 64, together=False)
+    assert (wrong != truth).sum() > 50  # the order matters here
+    torch.testing.assert_close(mask_head_iou.true_order_masks(alone.depth_map, truth), truth)
+    # with the order the meshes already have, it is usl-eval's render of them
+    torch.testing.assert_close(mask_head_iou.true_order_masks(alone.depth_map, wrong), wrong)
