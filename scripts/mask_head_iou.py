@@ -7,11 +7,16 @@ head, trained with Mask R-CNN's dense 2D loss on the same images, does no better
 the image features are the limit, not the shape head or its loss.
 
 The meshes are also scored as usl-eval scores them, all drawn together (each its visible part),
-and drawn together in the TRUE occlusion order (where several meshes cover a pixel of one
-object's true mask, that object wins). "Together" below "alone" is what a wrong depth order
-costs: a mesh drawn in front of the object that truly hides it takes that object's pixels. The
-true order scores above "alone" too, as an owner covering its pixels takes them back from the
-(amodal) meshes of the objects behind it, which "alone" counts against those meshes.
+and in two orders that use the truth:
+
+* in the true object order: each pixel goes to the covering mesh whose object is nearest by the
+  records' true nearest depth (``depth_min``), a painter's algorithm (objects whose depth ranges
+  interleave, a chair pushed under a table, are ordered by their nearest points). Against
+  "together" this isolates what the predicted depths get wrong between objects;
+* "true owner wins": where several meshes cover a pixel of one object's true mask, that object
+  wins. This is an oracle on visibility, not on depth: it also hides the pixels that an occluder's
+  own mesh spills onto the visible part of the object behind it, which no order can hide. Its
+  gap to the true object order is what the silhouettes' spill costs when drawn together.
 
     python3 scripts/mask_head_iou.py HELDOUT_BUILD RUN_OR_CHECKPOINT [--split train] [--input-views every:8]
 """
@@ -46,6 +51,15 @@ def true_order_masks(depth: Tensor, true_masks: Tensor) -> Tensor:
     return covered.any(0) & (winner == torch.arange(depth.shape[0])[:, None, None])
 
 
+def object_order_masks(depth: Tensor, object_depth: Tensor) -> Tensor:
+    """(N, H, W) visible masks of N meshes drawn with a painter's algorithm: each pixel goes to the
+    covering mesh (finite ``depth``, drawn alone) with the smallest ``object_depth`` (NaN: last)."""
+    covered = torch.isfinite(depth)
+    rank = torch.nan_to_num(object_depth.double(), nan=torch.inf)
+    winner = torch.where(covered, rank[:, None, None], torch.inf).argmin(0)
+    return covered.any(0) & (winner == torch.arange(depth.shape[0])[:, None, None])
+
+
 def draw(verts: Tensor, faces: Tensor, K: Tensor, height: int, width: int, together: bool):
     """The z-buffer of N meshes (N, V, 3) in one view: all together (usl-eval's render) or each alone."""
     meshes, n = Meshes.from_shared_topology(verts, faces), len(verts)
@@ -69,7 +83,8 @@ def frame_ious(model, frame) -> dict[str, list[float]]:
         "mask head": mask_iou(mask_head.bool(), true, nan).tolist(),
         "mesh (no occlusion)": mask_iou(alone.masks, true, nan).tolist(),
         "meshes together (usl-eval)": mask_iou(together.masks, true, nan).tolist(),
-        "meshes together, true order": mask_iou(true_order_masks(alone.depth_map, true), true, nan).tolist(),
+        "meshes together, true object order": mask_iou(object_order_masks(alone.depth_map, frame.depth_min), true, nan).tolist(),
+        "meshes together, true owner wins": mask_iou(true_order_masks(alone.depth_map, true), true, nan).tolist(),
         "inscribed ellipse": mask_iou(inscribed_ellipses(frame.boxes, height, width), true, nan).tolist(),
     }
 

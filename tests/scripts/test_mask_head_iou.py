@@ -1,5 +1,6 @@
-"""scripts/mask_head_iou.py: the true-order composite, against the z-buffer of the same meshes
-placed in that order (two spheres overlapping in the image, drawn with both depth orders)."""
+"""scripts/mask_head_iou.py: the true-owner and true-object-order composites, against the z-buffer
+of the same meshes placed in that order (two spheres overlapping in the image, drawn with both
+depth orders), and the owner oracle hiding a spill that no order hides."""
 from __future__ import annotations
 
 import sys
@@ -33,3 +34,27 @@ def test_true_order_is_the_z_buffer_of_the_meshes_placed_in_that_order():
     torch.testing.assert_close(mask_head_iou.true_order_masks(alone.depth_map, truth), truth)
     # with the order the meshes already have, it is usl-eval's render of them
     torch.testing.assert_close(mask_head_iou.true_order_masks(alone.depth_map, wrong), wrong)
+
+
+def test_true_object_order_is_the_z_buffer_of_the_meshes_placed_in_that_order():
+    b_in_front, faces = _spheres(3.0, 2.5)
+    truth = mask_head_iou.draw(b_in_front, faces, K, 64, 64, together=True).masks
+    a_in_front, _ = _spheres(2.5, 3.0)
+    alone = mask_head_iou.draw(a_in_front, faces, K, 64, 64, together=False)
+    torch.testing.assert_close(mask_head_iou.object_order_masks(alone.depth_map, torch.tensor([3.0, 2.5])), truth)
+    # an object without a true depth goes behind every other
+    torch.testing.assert_close(mask_head_iou.object_order_masks(alone.depth_map, torch.tensor([float("nan"), 2.5])), truth)
+
+
+def test_the_owner_oracle_hides_a_spill_that_the_true_order_keeps():
+    """b is in front, but its true mask is smaller than its mesh (the mesh spills onto a's visible
+    pixels): drawn in the true order the spill takes a's pixels; the owner oracle gives them back."""
+    meshes, faces = _spheres(3.0, 2.5)
+    drawn = mask_head_iou.draw(meshes, faces, K, 64, 64, together=True).masks
+    alone = mask_head_iou.draw(meshes, faces, K, 64, 64, together=False)
+    spill = drawn[1] & (torch.arange(64)[None, :] > 34)  # b's pixels right of the middle: a's in truth
+    truth = torch.stack([drawn[0] | spill, drawn[1] & ~spill])
+    in_order = mask_head_iou.object_order_masks(alone.depth_map, torch.tensor([3.0, 2.5]))
+    owner = mask_head_iou.true_order_masks(alone.depth_map, truth)
+    assert spill.sum() > 20 and in_order[1][spill].all()  # the true order leaves the spill with b
+    assert owner[0][spill].all() and not owner[1][spill].any()
