@@ -116,15 +116,3 @@ def test_fpn_levels_shapes_and_strides():
         assert feature.shape == (2, shapes[name].channels, -(-128 // stride), -(-96 // stride))
     assert [s.stride for s in shapes.values()] == [4, 8, 16, 32, 64] and shapes["p2"].channels == 32
     assert backbone.size_divisibility == 32
-
-
-def test_group_norm_normalises_each_image_alone_with_at_least_four_channels_a_group():
-    from usl.model.backbone.norm import group_count, make_norm
-
-    assert [group_count(c) for c in (16, 32, 64, 128, 256, 48)] == [4, 8, 16, 32, 32, 12]
-    norm = make_norm("GN", 16)
-    x = torch.randn(2, 16, 5, 5)
-    one = norm(x[:1])
-    torch.testing.assert_close(norm(x)[:1], one)  # no batch statistics
-    grouped = one.view(4, -1)
-    torch.testing.assert_close(grouped.mean(1), torch.zeros(4), atol=1e-5, rtol=0)

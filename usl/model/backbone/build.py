@@ -26,7 +26,7 @@ class ShapeSpec:
 class ResNetConfig:
     depth: int = 50
     base_channels: int = 64  # width of the stem; stages have 1x, 2x, 4x, 8x (x4 for bottlenecks)
-    norm: str = "FrozenBN"  # "BN", "FrozenBN" or "GN" (usl.model.backbone.norm)
+    norm: str = "FrozenBN"  # "BN" or "FrozenBN"
     freeze_at: int = 2  # 0: train all; 1: freeze stem; k: also freeze the first k-1 stages
     # Bottleneck stride on the first 1x1 conv (original MSRA ResNet, detectron2 weights) instead of
     # the 3x3 (v1.5, torchvision). None: as the model's init weights need (ModelConfig resolves it).

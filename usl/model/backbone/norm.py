@@ -1,4 +1,4 @@
-"""Normalisation layers for the backbone: BatchNorm, BatchNorm frozen to an affine map, or GroupNorm."""
+"""Normalisation layers for the backbone: BatchNorm, or BatchNorm frozen to an affine map."""
 from __future__ import annotations
 
 import torch
@@ -6,7 +6,7 @@ from torch import nn
 
 Tensor = torch.Tensor
 
-NORMS = ("BN", "FrozenBN", "GN")
+NORMS = ("BN", "FrozenBN")
 
 
 class FrozenBatchNorm2d(nn.Module):
@@ -51,25 +51,11 @@ class FrozenBatchNorm2d(nn.Module):
         return f"{self.num_features}, eps={self.eps}"
 
 
-def group_count(channels: int) -> int:
-    """GroupNorm's groups: detectron2's 32, fewer for narrow layers (at least 4 channels a group),
-    so quarter-width backbones (16-channel stems) can use it too."""
-    groups = max(1, min(32, channels // 4))
-    while channels % groups:
-        groups -= 1
-    return groups
-
-
 def make_norm(kind: str, channels: int) -> nn.Module:
-    """``GN`` normalises each image on its own: batch statistics of 1-2 images per process (CPU
-    training from scratch) are noisy, and eval-mode BatchNorm then sees other statistics than
-    training did (Wu & He, Group Normalization, 2018; He et al., Rethinking ImageNet Pre-training, 2019)."""
     if kind == "BN":
         return nn.BatchNorm2d(channels)
     if kind == "FrozenBN":
         return FrozenBatchNorm2d(channels)
-    if kind == "GN":
-        return nn.GroupNorm(group_count(channels), channels)
     raise ValueError(f"unknown norm {kind!r}; choose one of {NORMS}")
 
 
