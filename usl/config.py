@@ -252,10 +252,6 @@ class LossConfig:
     # left out of this object's l_xent (it may be hidden there), instead of teaching it to carve
     # away what an occluder covers. False: the paper's per-object comparison.
     ignore_occluders: bool = False
-    # With ignore_occluders: keep another object's pixels in this object's l_xent where this mesh's
-    # surface is nearer than that object's own mesh there (predicted depths, no gradient through
-    # them): drawn together, this mesh would take a pixel the true masks give to the other object.
-    occluders_in_front_only: bool = False
     # "2d": the paper's multi-view silhouette loss L_3D. "3d": Mesh R-CNN's losses against the
     # objects table's true meshes instead (Table 1's "Mesh R-CNN (3D sup.)" upper bound, Scene-Shapes
     # only): Chamfer, normal and edge terms on points in the input camera's frame (loss.mesh3d).

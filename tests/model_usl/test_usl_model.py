@@ -192,24 +192,3 @@ def test_gradient_diagnostics_observe_without_changing_the_step(setup):
     torch.manual_seed(0)
     no_dist = USLModel(cfg.model, replace(cfg.loss, dist_schedule=PiecewiseLinear(iters=(0,), values=(0.0,))))
     assert no_dist(samples, diagnostics=True)["stat/grad_dist"].item() == 0.0
-
-
-def test_occluders_in_front_only_keeps_the_pixels_a_mesh_would_take_from_their_owner():
-    """Two spheres overlapping in one view: in the true order no pixel is taken; with the truth
-    swapped (the far sphere owning the overlap), the near one would take exactly the overlap."""
-    from usl.geometry import Meshes, ico_sphere
-    from usl.model.multiview_loss import _in_front_of_owner
-    from usl.render import rasterize_hard
-
-    verts, faces = ico_sphere(2)
-    K = torch.tensor([[100.0, 0.0, 64.0], [0.0, 100.0, 64.0], [0.0, 0.0, 1.0]])
-    meshes = torch.stack([verts * 0.3 + torch.tensor([0.0, 0.0, 2.0]), verts * 0.3 + torch.tensor([0.3, 0.0, 3.0])])
-    packed = Meshes.from_shared_topology(meshes, faces)
-    args = (packed.verts_packed(), packed.faces_packed(), packed.faces_packed_to_mesh_idx())
-    true_order = rasterize_hard(*args, K, 128, 128).masks
-    assert not _in_front_of_owner(meshes, faces, K, true_order).any()
-    alone = torch.isfinite(rasterize_hard(*args, K.expand(2, 3, 3), 128, 128, mesh_view=torch.arange(2)).depth_map)
-    overlap = alone[0] & alone[1]
-    swapped = torch.stack([alone[0] & ~alone[1], alone[1]])
-    taken = _in_front_of_owner(meshes, faces, K, swapped)
-    assert overlap.sum() > 100 and torch.equal(taken[0], overlap) and not taken[1].any()

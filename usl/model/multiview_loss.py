@@ -35,7 +35,7 @@ from usl.losses import (
     silhouette_bce_loss,
     silhouette_chamfer_loss,
 )
-from usl.render import rasterize_hard, render_dynamic
+from usl.render import render_dynamic
 
 Tensor = torch.Tensor
 
@@ -159,25 +159,7 @@ def _gather_pairs(
         pairs.weight.append(torch.full((len(present),), 1.0 / (num_pairs * batch_size), device=verts.device))
         pairs.is_input.append(torch.full((len(present),), position == 0, device=verts.device))
         if cfg.ignore_occluders:
-            others = view.masks.any(dim=0) & ~masks
-            if cfg.occluders_in_front_only:
-                others = others & ~_in_front_of_owner(pairs.verts[-1], faces, view.K.float(), masks)
-            pairs.occluders.extend(others.unbind(0))
-
-
-@torch.no_grad()
-def _in_front_of_owner(verts: Tensor, faces: Tensor, K: Tensor, masks: Tensor) -> Tensor:
-    """(n, H, W): pixels of another object's true mask where this mesh's surface is nearer than
-    that object's own mesh (drawn alone, z-buffered): there this mesh would hide the pixel's owner
-    when all are drawn together, whatever the true order (``loss.occluders_in_front_only``)."""
-    n, height, width = masks.shape
-    meshes = Meshes.from_shared_topology(verts.detach(), faces)
-    depth = rasterize_hard(meshes.verts_packed(), meshes.faces_packed(), meshes.faces_packed_to_mesh_idx(),
-                           K.expand(n, 3, 3), height, width, mesh_view=torch.arange(n, device=verts.device)).depth_map
-    # the owner's depth at each pixel of its true mask (+inf where its mesh is absent: unknown, kept hidden)
-    owner_depth = torch.where(masks, depth, torch.inf).amin(dim=0)
-    owner = masks.any(dim=0)
-    return owner & ~masks & torch.isfinite(owner_depth) & (depth < owner_depth)
+            pairs.occluders.extend((view.masks.any(dim=0) & ~masks).unbind(0))
 
 
 def shape_regularizers(
