@@ -252,10 +252,6 @@ class LossConfig:
     # left out of this object's l_xent (it may be hidden there), instead of teaching it to carve
     # away what an occluder covers. False: the paper's per-object comparison.
     ignore_occluders: bool = False
-    # Weight of the input view's (object, view) pairs against each other view's 1 in an image's mean
-    # (the paper: 1, every pair alike). The input view's silhouettes depend on the shape only (the
-    # 2D box fixes their place), the other views' on the layout too.
-    input_view_weight: float = 1.0
     # "2d": the paper's multi-view silhouette loss L_3D. "3d": Mesh R-CNN's losses against the
     # objects table's true meshes instead (Table 1's "Mesh R-CNN (3D sup.)" upper bound, Scene-Shapes
     # only): Chamfer, normal and edge terms on points in the input camera's frame (loss.mesh3d).

@@ -192,24 +192,3 @@ def test_gradient_diagnostics_observe_without_changing_the_step(setup):
     torch.manual_seed(0)
     no_dist = USLModel(cfg.model, replace(cfg.loss, dist_schedule=PiecewiseLinear(iters=(0,), values=(0.0,))))
     assert no_dist(samples, diagnostics=True)["stat/grad_dist"].item() == 0.0
-
-
-def test_input_view_weight_weighs_the_input_views_pairs_against_the_others(setup):
-    """l3d with input_view_weight=w is the w-weighted mean of the input view's pairs and the
-    others': recomposed from the input view alone (w = 1) and the other views alone (w = 0)."""
-    cfg, records, dataset = setup
-    sample = dataset[SampleKey(1, 0)]
-    verts, faces = _true_meshes(records, dataset, sample, 1)
-    verts = verts * 1.1
-
-    def l3d(weight, views=None):
-        loss_cfg = replace(cfg.loss, input_view_weight=weight)
-        chosen = replace(sample, views=views) if views is not None else sample
-        return multiview_silhouette_loss(verts, faces, [chosen], [len(verts)], loss_cfg).l3d
-
-    inputs = int(sample.views[0].present.sum())
-    others = sum(int(v.present.sum()) for v in sample.views[1:])
-    input_mean, others_mean = l3d(1.0, sample.views[:1]), l3d(0.0)
-    expected = (3 * inputs * input_mean + others * others_mean) / (3 * inputs + others)
-    assert torch.isclose(l3d(3.0), expected, rtol=1e-5)
-    assert not torch.isclose(l3d(3.0), l3d(1.0), rtol=1e-3)

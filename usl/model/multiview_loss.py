@@ -141,8 +141,7 @@ def _gather_pairs(
     generator = torch.Generator(device=verts.device).manual_seed(sample.seed)
     surface = sample_points_from_meshes(Meshes.from_shared_topology(verts, faces), cfg.mesh_points, generator)
     input_pose = sample.views[0].cam_to_world
-    view_weights = [cfg.input_view_weight if position == 0 else 1.0 for position in range(len(sample.views))]
-    total = sum(w * int(view.present.sum()) for w, view in zip(view_weights, sample.views))
+    num_pairs = sum(int(view.present.sum()) for view in sample.views)
     for position, view in enumerate(sample.views):
         present = torch.nonzero(view.present).squeeze(1)
         if len(present) == 0:
@@ -157,7 +156,7 @@ def _gather_pairs(
         pairs.masks.extend(masks.unbind(0))
         pairs.K.append(view.K.float().expand(len(present), 3, 3))
         pairs.sizes.append(torch.tensor(view.size, device=verts.device).expand(len(present), 2))
-        pairs.weight.append(torch.full((len(present),), view_weights[position] / (total * batch_size), device=verts.device))
+        pairs.weight.append(torch.full((len(present),), 1.0 / (num_pairs * batch_size), device=verts.device))
         pairs.is_input.append(torch.full((len(present),), position == 0, device=verts.device))
         if cfg.ignore_occluders:
             pairs.occluders.extend((view.masks.any(dim=0) & ~masks).unbind(0))
