@@ -119,7 +119,8 @@ class ShapeHeadConfig:
     num_graph_convs: int = 3  # graph convolutions per stage
     hidden_dim: int = 256  # width of the bottleneck and the graph convolutions
     # Backbone maps sampled at each vertex's projection (each at its own stride) and concatenated:
-    # [p2] (the paper's FPN recipes) or [res2, res3, res4, res5] (Mesh R-CNN's ShapeNet model, R50)
+    # [p2] (the paper's FPN recipes) or [res2, res3, res4, res5] (Mesh R-CNN's ShapeNet model, R50);
+    # "image" names the normalised input image itself (3 channels, stride 1), e.g. [p2, image]
     features: tuple[str, ...] = ("p2",)
     feature: Optional[str] = None  # deprecated: one map, forwarded to features (old configs and checkpoints)
     # Mesh R-CNN: each stage's last GraphConv output is concatenated into the next stage's first
@@ -153,7 +154,7 @@ class ShapeHeadConfig:
             warnings.warn("model.shape.feature is deprecated: use model.shape.features (a list)", FutureWarning)
             self.features, self.feature = (self.feature,), None
         if not self.features or len(set(self.features)) != len(self.features):
-            raise ConfigError(f"model.shape.features: need distinct backbone map names, got {list(self.features)}")
+            raise ConfigError(f"model.shape.features: need distinct map names, got {list(self.features)}")
 
 
 DETECTOR_PRESETS = {"default": DetectorConfig, "r50": DetectorConfig.r50, "tiny": DetectorConfig.tiny}

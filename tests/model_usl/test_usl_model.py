@@ -8,6 +8,7 @@ import torch
 from usl.losses import PiecewiseLinear
 from usl.data import SampleKey
 from usl.geometry.cameras import project, transform_points
+from usl.model.heads import roimap_features
 from usl.model.multiview_loss import multiview_silhouette_loss
 from usl.model.outputs import ObjectPredictions
 from usl.model.usl_model import USLModel
@@ -192,3 +193,29 @@ def test_gradient_diagnostics_observe_without_changing_the_step(setup):
     torch.manual_seed(0)
     no_dist = USLModel(cfg.model, replace(cfg.loss, dist_schedule=PiecewiseLinear(iters=(0,), values=(0.0,))))
     assert no_dist(samples, diagnostics=True)["stat/grad_dist"].item() == 0.0
+
+
+def test_shape_head_can_sample_the_input_image_itself(setup):
+    """``model.shape.features=[p2, image]``: the normalised input image is a 3-channel map at
+    stride 1, so a vertex projecting onto a pixel centre reads exactly that pixel's colour."""
+    cfg, _, dataset = setup
+    shape_cfg = replace(cfg.model.shape, features=("p2", "image"))
+    model = USLModel(replace(cfg.model, shape=shape_cfg), cfg.loss)
+    frame = dataset[SampleKey(0, 0)].frame
+    _, features = model._backbone([frame])
+    height, width = frame.size
+    normalised = (frame.image - model.pixel_mean) / model.pixel_std
+    assert torch.allclose(features["image"][0, :, :height, :width], normalised)
+    assert model.shape_head.strides == [4, 1]
+    assert model.shape_head.stages[0].bottleneck.in_features == features["p2"].shape[1] + 3
+    # cube points whose projections are pixel centres inside the first object's box
+    box = frame.boxes[0]
+    cols = torch.arange(int(box[0]) + 1, int(box[2]) - 1)
+    rows = torch.full_like(cols, int((box[1] + box[3]) / 2))
+    x = 2 * (cols + 0.5 - box[0]) / (box[2] - box[0]) - 1
+    y = 2 * (rows + 0.5 - box[1]) / (box[3] - box[1]) - 1
+    verts = torch.stack([x, y, torch.zeros_like(x)], dim=-1)[None]
+    sampled = roimap_features([features[name] for name in shape_cfg.features], model.shape_head.strides, verts, box[None], torch.tensor([0]))
+    torch.testing.assert_close(sampled[0, :, -3:], normalised[:, rows, cols].T, atol=1e-5, rtol=0)
+    # without it, the features the detector and the heads see are the backbone's alone
+    assert "image" not in USLModel(cfg.model, cfg.loss)._backbone([frame])[1]

@@ -22,7 +22,7 @@ from usl.data.frames import FrameData
 from usl.data.samples import MultiViewSample
 from usl.geometry import cube_to_frustum
 from usl.losses import combine_losses
-from usl.model.backbone import IMAGENET_MEAN, IMAGENET_STD
+from usl.model.backbone import IMAGENET_MEAN, IMAGENET_STD, ShapeSpec
 from usl.model.detector import ImageList, MaskRCNN, MultiScaleRoIAlign
 from usl.model.heads import LayoutHead, LayoutPrediction, ShapeHead, ShapePrediction
 from usl.model.mesh3d_loss import mesh_supervision_loss
@@ -32,6 +32,8 @@ from usl.model.pretrained import init_detector, print_report
 
 Tensor = torch.Tensor
 MODES = ("gt_boxes", "detections")
+# model.shape.features may name the input image (3 channels at stride 1) next to the backbone's maps
+IMAGE_MAP = "image"
 
 
 @dataclass
@@ -76,7 +78,7 @@ class USLModel(nn.Module):
         )
         in_channels = shapes[cfg.layout.in_features[0]].channels
         self.layout_head = LayoutHead(in_channels, len(cfg.categories), cfg.layout, cfg.layout_range)
-        self.shape_head = ShapeHead(shapes, cfg.shape, len(cfg.categories))
+        self.shape_head = ShapeHead({**shapes, IMAGE_MAP: ShapeSpec(channels=3, stride=1)}, cfg.shape, len(cfg.categories))
         if cfg.init_weights and load_init_weights:
             print_report(init_detector(self.detector, cfg.init_weights, cfg.init_format))
         self.register_buffer("pixel_mean", torch.tensor(IMAGENET_MEAN).view(3, 1, 1), persistent=False)
@@ -102,7 +104,10 @@ class USLModel(nn.Module):
             h, w = frame.size
             batch[index, :, :h, :w] = (frame.image.to(device) - self.pixel_mean) / self.pixel_std
         image_list = self.detector.preprocess(batch, sizes)
-        return image_list, self.detector.backbone(image_list.tensor)
+        features = self.detector.backbone(image_list.tensor)
+        if IMAGE_MAP in self.cfg.shape.features:  # the normalised image itself, a stride-1 map
+            features = {**features, IMAGE_MAP: image_list.tensor}
+        return image_list, features
 
     def objects(
         self, features: dict[str, Tensor], boxes: list[Tensor], labels: list[Tensor], K: list[Tensor]
