@@ -154,7 +154,7 @@ class ShapeHeadConfig:
             warnings.warn("model.shape.feature is deprecated: use model.shape.features (a list)", FutureWarning)
             self.features, self.feature = (self.feature,), None
         if not self.features or len(set(self.features)) != len(self.features):
-            raise ConfigError(f"model.shape.features: need distinct map names, got {list(self.features)}")
+            raise ConfigError(f"model.shape.features: need distinct backbone map names, got {list(self.features)}")
 
 
 DETECTOR_PRESETS = {"default": DetectorConfig, "r50": DetectorConfig.r50, "tiny": DetectorConfig.tiny}

@@ -57,8 +57,9 @@ def test_tiny_recipe_uses_the_detectors_tiny_network():
     tiny = load_config("tiny")
     assert to_dict(tiny.model.detector) == to_dict(DetectorConfig.tiny())
     assert tiny.model.shape.ico_level == 2 and tiny.optim.name == "adam"
-    # the FPN shape head of its base (scene_shapes_fpn), not Scene-Shapes' Mesh R-CNN head
-    assert tiny.model.shape.features == ("p2",) and not tiny.model.shape.pass_features
+    # the FPN shape head of its base (scene_shapes_fpn), not Scene-Shapes' Mesh R-CNN head, also
+    # sampling the image itself
+    assert tiny.model.shape.features == ("p2", "image") and not tiny.model.shape.pass_features
     assert tiny.model.shape.bottleneck_init == "torch" and tiny.model.layout.in_features == ("p2",)
 
 

@@ -1,7 +1,8 @@
 """Shape head (paper Sec. 3.3): an identical ico-sphere per object, deformed in the normalized cube.
 
-Each of S refinement stages samples a feature per vertex from one or more backbone maps,
-concatenated (RoIMap, or RoIAlign + VertAlign for the ablation), projects it to ``hidden_dim``
+Each of S refinement stages samples a feature per vertex from one or more backbone maps (or the
+input image itself, as a stride-1 map, when ``features`` names ``image``), concatenated (RoIMap,
+or RoIAlign + VertAlign for the ablation), projects it to ``hidden_dim``
 (Mesh R-CNN's bottleneck), runs ``num_graph_convs`` GraphConvs on [features, positions] and
 predicts offsets with a Linear on [features, positions]: ``dV_i = tanh(offset)``,
 ``V_i = V_{i-1} + dV_i``. With ``pass_features`` (Mesh R-CNN) a stage's last GraphConv output also
