@@ -12,11 +12,14 @@ and in two orders that use the truth:
 * in the true object order: each pixel goes to the covering mesh whose object is nearest by the
   records' true nearest depth (``depth_min``), a painter's algorithm (objects whose depth ranges
   interleave, a chair pushed under a table, are ordered by their nearest points). Against
-  "together" this isolates what the predicted depths get wrong between objects;
+  "together" this isolates what the predicted depths get wrong between objects, as far as one
+  depth per object can order them (the script also counts the overlapping pairs whose predicted
+  nearest depths order them rightly);
 * "true owner wins": where several meshes cover a pixel of one object's true mask, that object
   wins. This is an oracle on visibility, not on depth: it also hides the pixels that an occluder's
   own mesh spills onto the visible part of the object behind it, which no order can hide. Its
-  gap to the true object order is what the silhouettes' spill costs when drawn together.
+  gap to the true object order bounds what the silhouettes' spill costs when drawn together (it
+  also holds what the per-object order gets wrong).
 
     python3 scripts/mask_head_iou.py HELDOUT_BUILD RUN_OR_CHECKPOINT [--split train] [--input-views every:8]
 """
@@ -42,10 +45,10 @@ def inscribed_ellipses(boxes: Tensor, height: int, width: int) -> Tensor:
         (v - centre[:, 1, None, None]) / half[:, 1, None, None]) ** 2 <= 1
 
 
-def true_order_masks(depth: Tensor, true_masks: Tensor) -> Tensor:
-    """(N, H, W) visible masks of N meshes drawn together in the true order, from their depth maps
-    drawn alone (+inf where absent): where a mesh covers a pixel of its own object's true mask
-    (the true masks are disjoint), it wins that pixel whatever its depth; elsewhere the nearest wins."""
+def owner_wins_masks(depth: Tensor, true_masks: Tensor) -> Tensor:
+    """(N, H, W) visible masks of N meshes drawn together with the true owner winning, from their
+    depth maps drawn alone (+inf where absent): where a mesh covers a pixel of its own object's true
+    mask (the true masks are disjoint), it wins that pixel whatever its depth; elsewhere the nearest wins."""
     covered = torch.isfinite(depth)
     winner = torch.where(covered & true_masks, -torch.inf, depth).argmin(0)
     return covered.any(0) & (winner == torch.arange(depth.shape[0])[:, None, None])
@@ -55,9 +58,24 @@ def object_order_masks(depth: Tensor, object_depth: Tensor) -> Tensor:
     """(N, H, W) visible masks of N meshes drawn with a painter's algorithm: each pixel goes to the
     covering mesh (finite ``depth``, drawn alone) with the smallest ``object_depth`` (NaN: last)."""
     covered = torch.isfinite(depth)
-    rank = torch.nan_to_num(object_depth.double(), nan=torch.inf)
+    # unknown depth: behind every known one, yet still ahead of "not covered" (+inf)
+    rank = torch.nan_to_num(object_depth.double(), nan=torch.finfo(torch.float64).max)
     winner = torch.where(covered, rank[:, None, None], torch.inf).argmin(0)
     return covered.any(0) & (winner == torch.arange(depth.shape[0])[:, None, None])
+
+
+def ordered_pairs(alone_masks: Tensor, predicted_depth: Tensor, true_depth: Tensor) -> tuple[int, int]:
+    """(right, total) over the pairs of meshes whose silhouettes (drawn alone) overlap and whose
+    objects both have a true nearest depth: right when their predicted nearest depths order them as
+    the true ones do."""
+    right = total = 0
+    for i in range(len(alone_masks)):
+        for j in range(i + 1, len(alone_masks)):
+            if not (alone_masks[i] & alone_masks[j]).any() or not torch.isfinite(true_depth[[i, j]]).all():
+                continue
+            total += 1
+            right += bool((predicted_depth[i] < predicted_depth[j]) == (true_depth[i] < true_depth[j]))
+    return right, total
 
 
 def draw(verts: Tensor, faces: Tensor, K: Tensor, height: int, width: int, together: bool):
@@ -69,7 +87,8 @@ def draw(verts: Tensor, faces: Tensor, K: Tensor, height: int, width: int, toget
 
 
 @torch.no_grad()
-def frame_ious(model, frame) -> dict[str, list[float]]:
+def frame_ious(model, frame) -> tuple[dict[str, list[float]], tuple[int, int]]:
+    """Each column's IoUs for the frame's objects, and ``ordered_pairs`` of its meshes."""
     _, features = model._backbone([frame])
     heads = model.detector.roi_heads
     logits = heads.mask_head(heads.mask_pooler(features, [frame.boxes]))
@@ -79,22 +98,26 @@ def frame_ious(model, frame) -> dict[str, list[float]]:
     alone = draw(verts, model.faces, frame.K, height, width, together=False)  # one view per mesh
     together = draw(verts, model.faces, frame.K, height, width, together=True)
     true, nan = frame.masks.bool(), float("nan")
+    pairs = ordered_pairs(alone.masks, alone.nearest_depth, frame.depth_min)
     return {
         "mask head": mask_iou(mask_head.bool(), true, nan).tolist(),
         "mesh (no occlusion)": mask_iou(alone.masks, true, nan).tolist(),
         "meshes together (usl-eval)": mask_iou(together.masks, true, nan).tolist(),
         "meshes together, true object order": mask_iou(object_order_masks(alone.depth_map, frame.depth_min), true, nan).tolist(),
-        "meshes together, true owner wins": mask_iou(true_order_masks(alone.depth_map, true), true, nan).tolist(),
+        "meshes together, true owner wins": mask_iou(owner_wins_masks(alone.depth_map, true), true, nan).tolist(),
         "inscribed ellipse": mask_iou(inscribed_ellipses(frame.boxes, height, width), true, nan).tolist(),
-    }
+    }, pairs
 
 
 def main() -> None:
     args = parse_args(__doc__.splitlines()[0])
     model, cfg = load_model(args)
     totals: dict[str, list[float]] = {}
+    right = total = 0
     for frame, _ in input_frames(args, cfg.data.max_size):
-        for name, values in frame_ious(model, frame).items():
+        ious, (frame_right, frame_total) = frame_ious(model, frame)
+        right, total = right + frame_right, total + frame_total
+        for name, values in ious.items():
             totals.setdefault(name, []).extend(values)
     print(f"| {args.data} ({args.split}, {args.input_views}) | mean mask IoU given the true box | objects |")
     print("|:---|:---:|:---:|")
@@ -102,6 +125,7 @@ def main() -> None:
         kept = torch.tensor(values)
         kept = kept[~kept.isnan()]
         print(f"| {name} | {100 * kept.mean():.1f} | {len(kept)} |")
+    print(f"\nPairs of overlapping meshes whose predicted nearest depths order them as the true ones do: {right} of {total}")
 
 
 if __name__ == "__main__":

@@ -86,7 +86,7 @@ class ShapeHead(nn.Module):
         super().__init__()
         missing = [name for name in cfg.features if name not in input_shape]
         if missing:
-            raise ValueError(f"model.shape.features: backbone has no map {missing}; it has {sorted(input_shape)}")
+            raise ValueError(f"model.shape.features: no map named {missing}; the maps are {sorted(input_shape)}")
         self.cfg = cfg
         self.strides = [input_shape[name].stride for name in cfg.features]
         verts, faces = ico_sphere(cfg.ico_level)
