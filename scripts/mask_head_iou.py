@@ -50,8 +50,7 @@ def owner_wins_masks(depth: Tensor, true_masks: Tensor) -> Tensor:
     depth maps drawn alone (+inf where absent): where a mesh covers a pixel of its own object's true
     mask (the true masks are disjoint), it wins that pixel whatever its depth; elsewhere the nearest wins."""
     covered = torch.isfinite(depth)
-    winner = torch.where(covered & true_masks, -torch.inf, depth).argmin(0)
-    return covered.any(0) & (winner == torch.arange(depth.shape[0])[:, None, None])
+    return _nearest_wins(covered, torch.where(covered & true_masks, -torch.inf, depth))
 
 
 def object_order_masks(depth: Tensor, object_depth: Tensor) -> Tensor:
@@ -60,22 +59,22 @@ def object_order_masks(depth: Tensor, object_depth: Tensor) -> Tensor:
     covered = torch.isfinite(depth)
     # unknown depth: behind every known one, yet still ahead of "not covered" (+inf)
     rank = torch.nan_to_num(object_depth.double(), nan=torch.finfo(torch.float64).max)
-    winner = torch.where(covered, rank[:, None, None], torch.inf).argmin(0)
-    return covered.any(0) & (winner == torch.arange(depth.shape[0])[:, None, None])
+    return _nearest_wins(covered, torch.where(covered, rank[:, None, None], torch.inf))
+
+
+def _nearest_wins(covered: Tensor, key: Tensor) -> Tensor:
+    """(N, H, W) masks: each pixel some mesh covers goes to the mesh with the smallest ``key`` there."""
+    return covered.any(0) & (key.argmin(0) == torch.arange(key.shape[0])[:, None, None])
 
 
 def ordered_pairs(alone_masks: Tensor, predicted_depth: Tensor, true_depth: Tensor) -> tuple[int, int]:
     """(right, total) over the pairs of meshes whose silhouettes (drawn alone) overlap and whose
     objects both have a true nearest depth: right when their predicted nearest depths order them as
     the true ones do."""
-    right = total = 0
-    for i in range(len(alone_masks)):
-        for j in range(i + 1, len(alone_masks)):
-            if not (alone_masks[i] & alone_masks[j]).any() or not torch.isfinite(true_depth[[i, j]]).all():
-                continue
-            total += 1
-            right += bool((predicted_depth[i] < predicted_depth[j]) == (true_depth[i] < true_depth[j]))
-    return right, total
+    i, j = torch.triu_indices(len(alone_masks), len(alone_masks), offset=1)
+    counted = (alone_masks[i] & alone_masks[j]).flatten(1).any(1) & torch.isfinite(true_depth[i]) & torch.isfinite(true_depth[j])
+    agree = (predicted_depth[i] < predicted_depth[j]) == (true_depth[i] < true_depth[j])
+    return int((counted & agree).sum()), int(counted.sum())
 
 
 def draw(verts: Tensor, faces: Tensor, K: Tensor, height: int, width: int, together: bool):
