@@ -133,9 +133,11 @@ def read_yaml_config(path: Path, _seen: tuple[Path, ...] = ()) -> dict[str, Any]
 
 
 def deep_merge(base: Mapping[str, Any], update: Mapping[str, Any]) -> dict[str, Any]:
+    """``update`` over ``base``, mapping by mapping; an empty mapping in ``update`` replaces the one in
+    ``base`` rather than merging, so ``optim.lr_mult={}`` clears a recipe's factors."""
     merged = copy.deepcopy(dict(base))
     for key, value in update.items():
-        if isinstance(value, Mapping) and isinstance(merged.get(key), Mapping):
+        if isinstance(value, Mapping) and value and isinstance(merged.get(key), Mapping):
             merged[key] = deep_merge(merged[key], value)
         else:
             merged[key] = copy.deepcopy(value)

@@ -42,5 +42,6 @@ def test_lr_mult_errors_name_the_bad_entry():
         build_optimizer(_net().named_parameters(), OptimConfig(lr_mult={"headx": 2.0}))  # a prefix, not a word part
     with pytest.raises(ConfigError, match="lr_mult"):
         OptimConfig(lr_mult={"head": 0.0})
-    cfg = load_config("tiny", ["optim.lr_mult={shape_head: 10}"])
-    assert cfg.optim.lr_mult == {"shape_head": 10.0}
+    cfg = load_config("tiny", ["optim.lr_mult={shape_head: 10}"])  # merged into the recipe's factors
+    assert cfg.optim.lr_mult == {"shape_head.global_mlp": 0.1, "shape_head": 10.0}
+    assert load_config("tiny", ["optim.lr_mult={}"]).optim.lr_mult == {}  # an empty mapping clears them

@@ -186,3 +186,33 @@ def test_category_templates_start_as_the_sphere_and_learn_per_category():
     assert head.templates.grad[0].abs().sum() > 0 and head.templates.grad[2].abs().sum() > 0
     with pytest.raises(ValueError, match="labels"):
         head({"p2": fmap}, boxes)
+
+
+def test_global_stage_starts_as_the_sphere_and_deforms_each_vertex_from_the_roi_features():
+    torch.manual_seed(0)
+    cfg = ShapeHeadConfig(ico_level=1, num_stages=1, hidden_dim=16, global_stage=32)
+    roi_dim = 8 * 3 * 3
+    head = ShapeHead({"p2": ShapeSpec(8, 4)}, cfg, roi_dim=roi_dim)
+    fmap = torch.randn(1, 8, 16, 16)
+    boxes = [torch.tensor([[4.0, 4.0, 40.0, 30.0], [10.0, 10.0, 60.0, 60.0]])]
+    roi = torch.randn(2, 8, 3, 3, requires_grad=True)
+    out = head({"p2": fmap}, boxes, roi=roi)
+    sphere, _ = ico_sphere(1)
+    assert len(out.stage_verts) == len(out.offsets) == 2  # the global stage, then the refinement stage
+    torch.testing.assert_close(out.verts, sphere.expand(2, -1, -1))  # zero-initialised last layer
+    # one offset per vertex and coordinate, from the flattened RoI features: V_g = sphere + tanh(MLP(roi))
+    last = head.global_mlp[-1]
+    with torch.no_grad():
+        last.bias.copy_(torch.linspace(-2, 2, last.bias.numel()))
+    out = head({"p2": fmap}, boxes, roi=roi)
+    expected = sphere + torch.tanh(torch.linspace(-2, 2, last.bias.numel())).view(-1, 3)
+    torch.testing.assert_close(out.stage_verts[0], expected.expand(2, -1, -1))
+    torch.nn.init.normal_(last.weight, std=0.1)
+    out = head({"p2": fmap}, boxes, roi=roi)
+    assert not torch.allclose(out.stage_verts[0][0], out.stage_verts[0][1])  # each object its own shape
+    out.verts.square().sum().backward()
+    assert roi.grad is not None and roi.grad.abs().sum() > 0
+    with pytest.raises(ValueError, match="roi"):
+        head({"p2": fmap}, boxes)
+    with pytest.raises(ValueError, match="roi_dim"):
+        ShapeHead({"p2": ShapeSpec(8, 4)}, cfg)

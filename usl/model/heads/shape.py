@@ -11,7 +11,10 @@ lie in [-1, 1]; V itself is not clamped (a clamp would stop the gradient of any 
 touches the cube's faces), and the frustum map guards points beyond the far plane
 (``usl.geometry.frustum``). The pre-tanh offsets are kept for the ½‖dV‖² regularizer.
 ``category_templates`` (an option, off in the paper's recipes) starts each object from its
-category's learned mean shape ``V_0 = sphere + T_c`` instead of the bare sphere.
+category's learned mean shape ``V_0 = sphere + T_c`` instead of the bare sphere. ``global_stage``
+(an option, on in ``tiny``) adds a stage before the others that sees the whole object: an MLP from
+the box's flattened RoIAlign features to every vertex's offset, ``V_g = V_0 + tanh(MLP)`` (CMR's
+shape decoder); its pre-tanh offsets join the regularizer's like any stage's.
 """
 from __future__ import annotations
 
@@ -78,11 +81,23 @@ class RefinementStage(nn.Module):
         return self.offset(torch.cat([x, positions], dim=-1)), x
 
 
+def global_deformation_mlp(roi_dim: int, width: int, num_verts: int) -> nn.Sequential:
+    """RoI features -> one pre-tanh offset per vertex and coordinate; the last layer starts at zero,
+    so the stage starts as the identity (the sphere), like the refinement stages."""
+    if roi_dim <= 0:
+        raise ValueError(f"model.shape.global_stage={width} needs the RoI features' size (roi_dim), got {roi_dim}")
+    last = nn.Linear(width, 3 * num_verts)
+    nn.init.zeros_(last.weight)
+    nn.init.zeros_(last.bias)
+    return nn.Sequential(nn.Linear(roi_dim, width), nn.ReLU(), nn.Linear(width, width), nn.ReLU(), last)
+
+
 class ShapeHead(nn.Module):
     """``input_shape``: the backbone's maps by name; ``cfg.features`` picks and orders the sampled ones.
-    ``num_classes`` sizes the per-category templates (``cfg.category_templates``)."""
+    ``num_classes`` sizes the per-category templates (``cfg.category_templates``); ``roi_dim`` is the
+    size of one object's flattened RoI features, the global stage's input (``cfg.global_stage``)."""
 
-    def __init__(self, input_shape: Mapping[str, ShapeSpec], cfg: ShapeHeadConfig, num_classes: int = 1):
+    def __init__(self, input_shape: Mapping[str, ShapeSpec], cfg: ShapeHeadConfig, num_classes: int = 1, roi_dim: int = 0):
         super().__init__()
         missing = [name for name in cfg.features if name not in input_shape]
         if missing:
@@ -103,6 +118,7 @@ class ShapeHead(nn.Module):
             else None
         )
         feature_dim = sum(input_shape[name].channels for name in cfg.features)
+        self.global_mlp = global_deformation_mlp(roi_dim, cfg.global_stage, len(verts)) if cfg.global_stage else None
         self.stages = nn.ModuleList(
             RefinementStage(
                 feature_dim,
@@ -115,9 +131,12 @@ class ShapeHead(nn.Module):
             for index in range(cfg.num_stages)
         )
 
-    def forward(self, features: Mapping[str, Tensor], boxes: list[Tensor], labels: Tensor | None = None) -> ShapePrediction:
+    def forward(
+        self, features: Mapping[str, Tensor], boxes: list[Tensor], labels: Tensor | None = None, roi: Tensor | None = None
+    ) -> ShapePrediction:
         """Deform one sphere per box; ``boxes`` is a list over images of (N_i, 4) input-pixel boxes,
-        ``labels`` the (N,) flat category indices (needed with category templates)."""
+        ``labels`` the (N,) flat category indices (needed with category templates), ``roi`` the (N, ...)
+        RoI features of the boxes (needed with the global stage)."""
         flat_boxes = torch.cat(boxes).float()
         image_index = torch.repeat_interleave(
             torch.arange(len(boxes), device=flat_boxes.device), torch.tensor([len(b) for b in boxes], device=flat_boxes.device)
@@ -130,6 +149,13 @@ class ShapeHead(nn.Module):
         maps = [features[name] for name in self.cfg.features]
         roi_features = None if self.poolers is None else [pooler(features, boxes) for pooler in self.poolers]
         stage_verts, offsets, previous = [], [], None
+        if self.global_mlp is not None:
+            if roi is None:
+                raise ValueError("model.shape.global_stage needs the boxes' RoI features (roi=...)")
+            offset = self.global_mlp(roi.flatten(1)).float().view(verts.shape)
+            verts = verts + torch.tanh(offset)
+            stage_verts.append(verts)
+            offsets.append(offset)
         for stage in self.stages:
             if roi_features is None:
                 vertex_features = roimap_features(maps, self.strides, verts, flat_boxes, image_index)
