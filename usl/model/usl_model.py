@@ -48,7 +48,7 @@ class ObjectOutputs:
     K: Tensor  # (N, 3, 3) each object's input camera
 
     def stage_verts_cam(self) -> list[Tensor]:
-        """Every refinement stage's meshes in the input camera's frame (the last is ``verts_cam``)."""
+        """Every stage's meshes (the global stage's first, if on) in the input camera's frame (the last is ``verts_cam``)."""
         cast = [cube_to_frustum(v.float(), self.boxes, self.K, self.layout.z, self.layout.rho) for v in self.shape.stage_verts[:-1]]
         return cast + [self.verts_cam]
 

@@ -37,7 +37,7 @@ Tensor = torch.Tensor
 @dataclass
 class ShapePrediction:
     verts: Tensor  # (N, V, 3) final vertices V_S in the normalized cube
-    stage_verts: list[Tensor]  # V_1 .. V_S, each (N, V, 3)
+    stage_verts: list[Tensor]  # V_g (with the global stage), then V_1 .. V_S, each (N, V, 3)
     offsets: list[Tensor]  # pre-tanh offsets of each stage, (N, V, 3)
 
 
