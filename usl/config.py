@@ -148,6 +148,13 @@ class ShapeHeadConfig:
     # stably at a tenth of the rate (optim.lr_mult={shape_head.global_mlp: 0.1}, tiny's): at the full
     # rate one seed of two saturated its tanh within 200 iterations. 0: the paper's head.
     global_stage: int = 0
+    # The global stage's offsets as a combination of the ico-sphere's `global_basis` smoothest
+    # fields (its graph Laplacian's first eigenvectors, the mesh's low-degree spherical harmonics;
+    # 49 ~ degrees 0-6) instead of one free offset per vertex: the stage can then only bend the
+    # sphere smoothly, and the refinement stages add the detail. On unseen scenes 25 made tiny's
+    # meshes smooth (normal consistency 0.75 -> 0.35) but cost Chamfer and F1 (README), so no
+    # recipe sets it. 0: one offset per vertex.
+    global_basis: int = 0
 
     def __post_init__(self) -> None:
         _check_choice("model.shape.sampler", self.sampler, ("roimap", "vertalign"))
@@ -156,6 +163,12 @@ class ShapeHeadConfig:
         _check_positive("model.shape.num_stages", self.num_stages)
         if self.global_stage < 0:
             raise ConfigError(f"model.shape.global_stage: must be >= 0 (0: none), got {self.global_stage}")
+        num_verts = 10 * 4**self.ico_level + 2
+        if self.global_basis and not (self.global_stage and 0 < self.global_basis <= num_verts):
+            raise ConfigError(
+                f"model.shape.global_basis={self.global_basis}: needs model.shape.global_stage > 0 and at most "
+                f"{num_verts} fields (the level-{self.ico_level} ico-sphere's vertices); 0: one offset per vertex"
+            )
         if self.feature is not None:  # the old single-map key, forwarded so old configs keep loading
             if self.features not in (ShapeHeadConfig.features, (self.feature,)):
                 raise ConfigError(

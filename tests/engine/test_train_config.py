@@ -102,6 +102,14 @@ def test_bad_overrides_name_the_key_and_the_command_line(overrides, message):
         assert str(info.value).startswith("command line:") and f"(override {overrides[0]!r})" in str(info.value)
 
 
+@pytest.mark.parametrize(
+    "overrides", [["model.shape.global_stage=0", "model.shape.global_basis=9"], ["model.shape.global_basis=163"]]
+)
+def test_a_global_basis_needs_the_global_stage_and_at_most_one_field_per_vertex(overrides):
+    with pytest.raises(ConfigError, match=r"^command line: .*global_basis=\d+: needs model\.shape\.global_stage > 0 and at most 162"):
+        load_config("tiny", overrides)
+
+
 def test_a_bad_recipe_names_its_file(tmp_path):
     recipe = tmp_path / "mine.yaml"
     recipe.write_text("_base_: " + str(resolve_config_path("tiny")) + "\noptim: {lrr: 1}\n")

@@ -14,7 +14,9 @@ touches the cube's faces), and the frustum map guards points beyond the far plan
 category's learned mean shape ``V_0 = sphere + T_c`` instead of the bare sphere. ``global_stage``
 (an option, on in ``tiny``) adds a stage before the others that sees the whole object: an MLP from
 the box's flattened RoIAlign features to every vertex's offset, ``V_g = V_0 + tanh(MLP)`` (CMR's
-shape decoder); its pre-tanh offsets join the regularizer's like any stage's.
+shape decoder); its pre-tanh offsets join the regularizer's like any stage's. With ``global_basis``
+the MLP predicts coefficients of the sphere's smoothest fields (``laplacian_eigenbasis``), and the
+offsets are their combination, so the stage bends the sphere smoothly.
 """
 from __future__ import annotations
 
@@ -25,7 +27,7 @@ import torch
 from torch import nn
 
 from usl.config import ShapeHeadConfig
-from usl.geometry import ico_sphere, unique_edges
+from usl.geometry import ico_sphere, laplacian_eigenbasis, unique_edges
 from usl.model.backbone import ShapeSpec
 
 from .graph_conv import GraphConv
@@ -81,12 +83,13 @@ class RefinementStage(nn.Module):
         return self.offset(torch.cat([x, positions], dim=-1)), x
 
 
-def global_deformation_mlp(roi_dim: int, width: int, num_verts: int) -> nn.Sequential:
-    """RoI features -> one pre-tanh offset per vertex and coordinate; the last layer starts at zero,
-    so the stage starts as the identity (the sphere), like the refinement stages."""
+def global_deformation_mlp(roi_dim: int, width: int, num_outputs: int) -> nn.Sequential:
+    """RoI features -> 3 numbers per output (a vertex's pre-tanh offset, or a basis field's
+    coefficients); the last layer starts at zero, so the stage starts as the identity (the
+    sphere), like the refinement stages."""
     if roi_dim <= 0:
         raise ValueError(f"model.shape.global_stage={width} needs the RoI features' size (roi_dim), got {roi_dim}")
-    last = nn.Linear(width, 3 * num_verts)
+    last = nn.Linear(width, 3 * num_outputs)
     nn.init.zeros_(last.weight)
     nn.init.zeros_(last.bias)
     return nn.Sequential(nn.Linear(roi_dim, width), nn.ReLU(), nn.Linear(width, width), nn.ReLU(), last)
@@ -118,7 +121,13 @@ class ShapeHead(nn.Module):
             else None
         )
         feature_dim = sum(input_shape[name].channels for name in cfg.features)
-        self.global_mlp = global_deformation_mlp(roi_dim, cfg.global_stage, len(verts)) if cfg.global_stage else None
+        self.global_mlp = (
+            global_deformation_mlp(roi_dim, cfg.global_stage, cfg.global_basis or len(verts)) if cfg.global_stage else None
+        )
+        # persistent: a repeated eigenvalue's eigenvectors differ between eigensolvers, so a
+        # checkpoint carries the basis its coefficients were learnt in
+        basis = laplacian_eigenbasis(len(verts), self.edges, cfg.global_basis) if cfg.global_basis else None
+        self.register_buffer("global_basis", basis)
         self.stages = nn.ModuleList(
             RefinementStage(
                 feature_dim,
@@ -152,7 +161,9 @@ class ShapeHead(nn.Module):
         if self.global_mlp is not None:
             if roi is None:
                 raise ValueError("model.shape.global_stage needs the boxes' RoI features (roi=...)")
-            offset = self.global_mlp(roi.flatten(1)).float().view(verts.shape)
+            offset = self.global_mlp(roi.flatten(1)).float().unflatten(-1, (-1, 3))
+            if self.global_basis is not None:
+                offset = self.global_basis @ offset  # (V, K) @ (N, K, 3): smooth fields' combination
             verts = verts + torch.tanh(offset)
             stage_verts.append(verts)
             offsets.append(offset)

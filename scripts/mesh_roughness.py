@@ -1,0 +1,76 @@
+"""How jagged are a model's meshes, and which stage of the shape head makes them so?
+
+Per object of a build's input views, given the TRUE box, two figures of the predicted mesh in the
+normalized cube after each stage of the shape head (the global stage first, where the recipe has
+one), next to the ico-sphere's own:
+- normal consistency, ``1 - cos`` of the angle between the normals of the two faces on each edge,
+  averaged over the edges (PyTorch3D's ``mesh_normal_consistency``): folds and spikes raise it, a
+  smooth mesh stays near the sphere's, however it is stretched;
+- the mean length of the uniform Laplacian ``v_i - mean(neighbours of v_i)``, which curvature
+  raises as well as spikes.
+The pictures show the same; this puts numbers on it and says which stage to blame.
+
+    python3 scripts/mesh_roughness.py HELDOUT_BUILD RUN_OR_CHECKPOINT [--split train] [--input-views every:8]
+"""
+from __future__ import annotations
+
+import torch
+
+from diagnostic_inputs import input_frames, load_model, parse_args
+from usl.geometry import uniform_laplacian
+
+Tensor = torch.Tensor
+
+
+def faces_on_each_edge(faces: Tensor) -> Tensor:
+    """(E, 2): the two faces that share each edge of a closed triangle mesh."""
+    sides = torch.cat([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]).sort(dim=1).values
+    _, edge = torch.unique(sides, dim=0, return_inverse=True)
+    face = torch.arange(len(faces), device=faces.device).repeat(3)
+    return face[edge.argsort(stable=True)].view(-1, 2)
+
+
+def normal_consistency(verts: Tensor, faces: Tensor, pairs: Tensor) -> Tensor:
+    """Mean 1 - cos between the normals of the face pairs of each of the (N, V, 3) meshes: (N,)."""
+    corners = verts[:, faces]
+    normals = torch.nn.functional.normalize(
+        torch.cross(corners[:, :, 1] - corners[:, :, 0], corners[:, :, 2] - corners[:, :, 0], dim=-1), dim=-1
+    )
+    return (1.0 - (normals[:, pairs[:, 0]] * normals[:, pairs[:, 1]]).sum(dim=-1)).mean(dim=1)
+
+
+def laplacian_length(verts: Tensor, laplacian: Tensor) -> Tensor:
+    """Mean ‖(L v)_i‖ over the vertices of each of the (N, V, 3) meshes: (N,)."""
+    return torch.stack([torch.sparse.mm(laplacian, mesh).norm(dim=1).mean() for mesh in verts])
+
+
+def roughness(verts: Tensor, faces: Tensor, pairs: Tensor, laplacian: Tensor) -> Tensor:
+    """(N, 2): normal consistency and Laplacian length of each mesh."""
+    return torch.stack([normal_consistency(verts, faces, pairs), laplacian_length(verts, laplacian)], dim=1)
+
+
+@torch.no_grad()
+def main() -> None:
+    args = parse_args(__doc__.splitlines()[0])
+    model, cfg = load_model(args)
+    head = model.shape_head
+    pairs = faces_on_each_edge(head.faces)
+    laplacian = uniform_laplacian(len(head.sphere_verts), head.edges)
+    names = (["the global stage"] if head.global_mlp is not None else []) + [f"stage {i + 1}" for i in range(len(head.stages))]
+    per_stage: list[list[Tensor]] = [[] for _ in names]
+    for frame, _ in input_frames(args, cfg.data.max_size):
+        _, features = model._backbone([frame])
+        shape = model.objects(features, [frame.boxes], [frame.labels], [frame.K]).shape
+        for values, verts in zip(per_stage, shape.stage_verts):
+            values.append(roughness(verts.float(), head.faces, pairs, laplacian))
+    sphere = roughness(head.sphere_verts[None], head.faces, pairs, laplacian)[0]
+    print(f"| {args.data} ({args.split}, {args.input_views}), true boxes, in the cube | normal consistency ↓ | mean ‖Lv‖ | objects |")
+    print("|:---|:---:|:---:|:---:|")
+    print(f"| ico-sphere (level {cfg.model.shape.ico_level}) | {sphere[0]:.3f} | {sphere[1]:.3f} | – |")
+    for name, values in zip(names, per_stage):
+        table = torch.cat(values)
+        print(f"| after {name} | {table[:, 0].mean():.3f} | {table[:, 1].mean():.3f} | {len(table)} |")
+
+
+if __name__ == "__main__":
+    main()
