@@ -17,26 +17,10 @@ from __future__ import annotations
 import torch
 
 from diagnostic_inputs import input_frames, load_model, parse_args
-from usl.geometry import uniform_laplacian
+from usl.geometry import faces_on_each_edge, uniform_laplacian
+from usl.losses import normal_consistency
 
 Tensor = torch.Tensor
-
-
-def faces_on_each_edge(faces: Tensor) -> Tensor:
-    """(E, 2): the two faces that share each edge of a closed triangle mesh."""
-    sides = torch.cat([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]).sort(dim=1).values
-    _, edge = torch.unique(sides, dim=0, return_inverse=True)
-    face = torch.arange(len(faces), device=faces.device).repeat(3)
-    return face[edge.argsort(stable=True)].view(-1, 2)
-
-
-def normal_consistency(verts: Tensor, faces: Tensor, pairs: Tensor) -> Tensor:
-    """Mean 1 - cos between the normals of the face pairs of each of the (N, V, 3) meshes: (N,)."""
-    corners = verts[:, faces]
-    normals = torch.nn.functional.normalize(
-        torch.cross(corners[:, :, 1] - corners[:, :, 0], corners[:, :, 2] - corners[:, :, 0], dim=-1), dim=-1
-    )
-    return (1.0 - (normals[:, pairs[:, 0]] * normals[:, pairs[:, 1]]).sum(dim=-1)).mean(dim=1)
 
 
 def laplacian_length(verts: Tensor, laplacian: Tensor) -> Tensor:

@@ -188,8 +188,10 @@ def test_paper_recipes_keep_the_papers_loss_and_init_while_tiny_documents_its_ch
         assert cfg.loss.dist_schedule.iters == () and cfg.loss.dist_schedule(10**5) == 1.0, name
         assert cfg.model.shape.graph_conv_init == "normal" and cfg.loss.iou_threshold == 0.5, name
         assert cfg.model.shape.global_stage == 0 and cfg.optim.lr_mult == {}, name
+        assert cfg.model.shape.global_basis == 0 and cfg.loss.weights.normal == 0.0, name
     tiny = load_config("tiny")
     assert not tiny.loss.gate_input_view and tiny.loss.ignore_occluders
     assert tiny.model.shape.graph_conv_init == "kaiming" and tiny.loss.render.resolution == 64
     assert tiny.model.shape.global_stage > 0 and tiny.optim.lr_mult == {"shape_head.global_mlp": 0.1}
+    assert tiny.loss.weights.normal == 0.1 and tiny.loss.weights.laplacian == 0.0
     assert tiny.loss.dist_schedule(0) == 1.0 and tiny.loss.dist_schedule(tiny.optim.max_iter) < 1.0

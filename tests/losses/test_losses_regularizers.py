@@ -7,7 +7,8 @@ import trimesh
 from usl.geometry.icosphere import ico_sphere
 from usl.geometry.meshes import Meshes
 from usl.geometry.sampling import sample_points_from_meshes
-from usl.losses.regularizers import laplacian_smoothing_loss, mesh_edge_loss, offset_l2_loss
+from usl.geometry.topology import faces_on_each_edge
+from usl.losses.regularizers import laplacian_smoothing_loss, mesh_edge_loss, normal_consistency, offset_l2_loss
 from usl.losses.total import LossWeights, combine_losses
 
 DT = torch.float64
@@ -56,6 +57,22 @@ def test_regularizers_gradcheck():
     assert torch.autograd.gradcheck(offset_l2_loss, (verts,))
 
 
+def test_normal_consistency_matches_trimesh_face_adjacency_angles_and_gradcheck():
+    rng = np.random.default_rng(3)
+    sphere = trimesh.creation.icosphere(subdivisions=2)
+    bumpy = sphere.copy()
+    bumpy.vertices = bumpy.vertices * rng.uniform(0.7, 1.3, size=(len(bumpy.vertices), 1)) * [1.5, 0.6, 1.0]
+    faces = torch.from_numpy(sphere.faces)
+    pairs = faces_on_each_edge(faces)
+    assert sorted(map(tuple, pairs.sort(dim=1).values.tolist())) == sorted(map(tuple, np.sort(sphere.face_adjacency, axis=1).tolist()))
+    verts = torch.from_numpy(np.stack([sphere.vertices, bumpy.vertices]))
+    for mesh, value in zip((sphere, bumpy), normal_consistency(verts, faces, pairs).tolist()):
+        assert value == pytest.approx(np.mean(1.0 - np.cos(mesh.face_adjacency_angles)), abs=1e-9)
+    v, f = ico_sphere(0, dtype=DT)
+    x = (v + 0.1 * torch.randn(12, 3, generator=torch.Generator().manual_seed(4), dtype=DT))[None].requires_grad_()
+    assert torch.autograd.gradcheck(lambda y: normal_consistency(y, f, faces_on_each_edge(f)), (x,))
+
+
 def test_recipes_and_combination():
     assert LossWeights.recipe("scene_shapes") == LossWeights(mu_2d=0.0, edge=0.1, offset_l2=0.0)
     assert LossWeights.recipe("hypersim") == LossWeights()
@@ -77,6 +94,10 @@ def test_recipes_and_combination():
         combine_losses(LossWeights.recipe("scannet"), l3d=one, detection={}, offset_l2=one)
     with pytest.raises(ValueError, match="detection"):
         combine_losses(LossWeights.recipe("hypersim"), l3d=one, offset_l2=one)
+    total, parts = combine_losses(LossWeights(mu_2d=0.0, offset_l2=0.0, normal=0.2), l3d=one, normal=3 * one)
+    assert total.item() == pytest.approx(1 + 0.6) and set(parts) == {"l3d", "normal"}
+    with pytest.raises(ValueError, match="normal"):
+        combine_losses(LossWeights(mu_2d=0.0, offset_l2=0.0, normal=0.2), l3d=one)
 
 
 def test_an_image_without_objects_gives_zero_regularizers_and_no_samples():
@@ -86,3 +107,16 @@ def test_an_image_without_objects_gives_zero_regularizers_and_no_samples():
     for loss in (mesh_edge_loss(empty), laplacian_smoothing_loss(empty), offset_l2_loss(verts)):
         assert loss.item() == 0.0 and loss.requires_grad
     assert sample_points_from_meshes(empty, 10).shape == (0, 10, 3)
+
+
+def test_the_model_averages_each_regularizer_per_image_then_over_the_batch_and_skips_unweighted_ones():
+    from usl.model.multiview_loss import shape_regularizers
+
+    v, faces = ico_sphere(1)
+    verts = v * torch.tensor([[1.0, 0.5, 2.0]]) + 0.05 * torch.randn(3, 42, 3, generator=torch.Generator().manual_seed(5))
+    out = shape_regularizers(verts, [], faces, [2, 0, 1], {"normal": True, "edge": True})
+    per_mesh = normal_consistency(verts, faces, faces_on_each_edge(faces))
+    assert out["normal"].item() == pytest.approx(((per_mesh[0] + per_mesh[1]) / 2 + per_mesh[2]).item() / 3)
+    edge = [mesh_edge_loss(Meshes.from_shared_topology(verts[rows], faces)) for rows in (slice(0, 2), slice(2, 3))]
+    assert out["edge"].item() == pytest.approx((edge[0] + edge[1]).item() / 3)
+    assert out["laplacian"] is None and out["offset_l2"] is None

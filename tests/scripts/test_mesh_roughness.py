@@ -11,7 +11,7 @@ import trimesh
 sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "scripts"))
 
 import mesh_roughness  # noqa: E402
-from usl.geometry import uniform_laplacian, unique_edges  # noqa: E402
+from usl.geometry import faces_on_each_edge, uniform_laplacian, unique_edges  # noqa: E402
 
 
 def test_normal_consistency_and_laplacian_length_match_trimesh():
@@ -20,7 +20,7 @@ def test_normal_consistency_and_laplacian_length_match_trimesh():
     bumpy = sphere.copy()
     bumpy.vertices = bumpy.vertices * rng.uniform(0.7, 1.3, size=(len(bumpy.vertices), 1)) * [1.5, 0.6, 1.0]
     faces = torch.from_numpy(sphere.faces)
-    pairs = mesh_roughness.faces_on_each_edge(faces)
+    pairs = faces_on_each_edge(faces)
     assert sorted(map(tuple, pairs.sort(dim=1).values.tolist())) == sorted(map(tuple, np.sort(sphere.face_adjacency, axis=1).tolist()))
     laplacian = uniform_laplacian(len(sphere.vertices), unique_edges(faces), torch.float64)
     verts = torch.from_numpy(np.stack([sphere.vertices, bumpy.vertices]))

@@ -1,4 +1,4 @@
-"""Mesh connectivity helpers: unique edges, the uniform graph Laplacian and its smoothest eigenvectors."""
+"""Mesh connectivity helpers: unique edges, the faces on each edge, the uniform graph Laplacian and its smoothest eigenvectors."""
 from __future__ import annotations
 
 import torch
@@ -20,6 +20,14 @@ def unique_edges(faces: Tensor, num_verts: int | None = None) -> Tensor:
     lo, hi = pairs.min(dim=1).values, pairs.max(dim=1).values
     keys = torch.unique(lo * n + hi)
     return torch.stack([keys // n, keys % n], dim=1)
+
+
+def faces_on_each_edge(faces: Tensor) -> Tensor:
+    """(E, 2): the two faces that share each edge of a closed triangle mesh, in ``unique_edges``' order."""
+    sides = torch.cat([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]).long().sort(dim=1).values
+    _, edge = torch.unique(sides, dim=0, return_inverse=True)
+    face = torch.arange(len(faces), device=faces.device).repeat(3)
+    return face[edge.argsort(stable=True)].view(-1, 2)
 
 
 def uniform_laplacian(num_verts: int, edges: Tensor, dtype: torch.dtype = torch.float32) -> Tensor:

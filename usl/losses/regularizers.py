@@ -1,4 +1,4 @@
-"""Shape regularizers of the paper's appendix (edge length, L2 on offsets, Laplacian)."""
+"""Shape regularizers of the paper's appendix (edge length, L2 on offsets, Laplacian), and normal consistency."""
 from __future__ import annotations
 
 import torch
@@ -53,3 +53,17 @@ def laplacian_smoothing_loss(meshes: Meshes) -> Tensor:
     verts = meshes.verts_packed()
     lap = torch.sparse.mm(meshes.laplacian_packed(), verts)
     return _mean_per_mesh(torch.linalg.vector_norm(lap, dim=1), meshes.verts_packed_to_mesh_idx(), len(meshes))
+
+
+def normal_consistency(verts: Tensor, faces: Tensor, pairs: Tensor) -> Tensor:
+    """Mean ``1 - cos`` between the normals of the two faces on each edge, per mesh: (N,).
+
+    ``verts`` (N, V, 3) share ``faces`` (F, 3); ``pairs`` (E, 2) are the faces on each edge
+    (``faces_on_each_edge``). PyTorch3D's ``mesh_normal_consistency``: 0 on a plane, small on a
+    fine smooth mesh, large where the mesh folds or spikes, however it is stretched.
+    """
+    corners = verts[:, faces]
+    normals = torch.nn.functional.normalize(
+        torch.cross(corners[:, :, 1] - corners[:, :, 0], corners[:, :, 2] - corners[:, :, 0], dim=-1), dim=-1
+    )
+    return (1.0 - (normals[:, pairs[:, 0]] * normals[:, pairs[:, 1]]).sum(dim=-1)).mean(dim=1)

@@ -2,7 +2,8 @@
 
 Here L_2D is Mask R-CNN's detection losses (RPN and box head), L_3D the mean of the
 per-pair ``l2d_loss`` over objects and views, and
-``L_reg = edge * L_edge + offset_l2 * ½‖dV‖² + laplacian * L_laplac``. Inside L_3D,
+``L_reg = edge * L_edge + offset_l2 * ½‖dV‖² + laplacian * L_laplac + normal * L_normal`` (normal
+consistency, not in the paper: an option). Inside L_3D,
 ``dist`` weighs l_dist (``l_2D = dist * l_dist + 1[IoU > t] l_xent``): 0 is Table 1's "w/o l_dist".
 
 The paper's recipes (``LossWeights.recipe(name)``):
@@ -31,6 +32,7 @@ class LossWeights:
     edge: float = 0.0  # L_edge (Mesh R-CNN's edge length)
     offset_l2: float = 0.05  # ½‖dV‖² on pre-tanh offsets
     laplacian: float = 0.0  # uniform Laplacian smoothing
+    normal: float = 0.0  # normal consistency (1 - cos between neighbouring faces' normals)
     # l_dist inside L_3D (times loss.dist_scale and loss.dist_schedule). 0 is Table 1's "w/o
     # l_dist": l_dist is not computed at all, so it adds exactly no gradient
     dist: float = 1.0
@@ -55,13 +57,14 @@ def combine_losses(
     edge: Tensor | None = None,
     offset_l2: Tensor | None = None,
     laplacian: Tensor | None = None,
+    normal: Tensor | None = None,
 ) -> tuple[Tensor, dict[str, Tensor]]:
     """Weighted sum of the objective's terms.
 
     A term may be None only if its weight is zero (the caller then need not compute it);
     a non-zero weight without its term is an error, so a recipe cannot silently lose a term.
     Returns the total and a dict of the weighted parts (for logging), keyed
-    ``"det/<name>"``, ``"l3d"``, ``"edge"``, ``"offset_l2"``, ``"laplacian"``.
+    ``"det/<name>"``, ``"l3d"``, ``"edge"``, ``"offset_l2"``, ``"laplacian"``, ``"normal"``.
     """
     parts: dict[str, Tensor] = {}
     if weights.mu_2d:
@@ -70,7 +73,7 @@ def combine_losses(
         for name, value in detection.items():
             parts[f"det/{name}"] = weights.mu_2d * value
     parts["l3d"] = weights.mu_3d * l3d
-    for name, term in (("edge", edge), ("offset_l2", offset_l2), ("laplacian", laplacian)):
+    for name, term in (("edge", edge), ("offset_l2", offset_l2), ("laplacian", laplacian), ("normal", normal)):
         weight = weights.mu_reg * getattr(weights, name)
         if not weight:
             continue

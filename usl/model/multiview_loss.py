@@ -24,12 +24,13 @@ import torch
 
 from usl.config import LossConfig
 from usl.data.samples import MultiViewSample
-from usl.geometry import Meshes, sample_points_from_meshes
+from usl.geometry import Meshes, faces_on_each_edge, sample_points_from_meshes
 from usl.geometry.cameras import relative_transform, transform_points
 from usl.losses import (
     l2d_loss,
     laplacian_smoothing_loss,
     mesh_edge_loss,
+    normal_consistency,
     offset_l2_loss,
     sample_mask_points,
     silhouette_bce_loss,
@@ -38,6 +39,9 @@ from usl.losses import (
 from usl.render import render_dynamic
 
 Tensor = torch.Tensor
+
+# the shape regularizers' names, as LossWeights and combine_losses call them
+REGULARIZERS = ("edge", "offset_l2", "laplacian", "normal")
 
 
 @dataclass
@@ -165,13 +169,14 @@ def _gather_pairs(
 def shape_regularizers(
     verts_cube: Tensor, offsets: list[Tensor], faces: Tensor, counts: list[int], need: dict[str, bool]
 ) -> dict[str, Tensor | None]:
-    """Edge, ½‖dV‖² (summed over stages, pre-tanh) and Laplacian terms, each a per-image mean
+    """Edge, ½‖dV‖² (summed over stages, pre-tanh), Laplacian and normal-consistency terms, each a per-image mean
     over objects averaged over the batch. Terms not in ``need`` are None (not computed).
 
     Regularizers act on the normalized-cube meshes, so their scale does not depend on layout.
     """
     zero = verts_cube.sum() * 0.0
-    result: dict[str, Tensor | None] = {name: (zero.clone() if need.get(name) else None) for name in ("edge", "offset_l2", "laplacian")}
+    result: dict[str, Tensor | None] = {name: (zero.clone() if need.get(name) else None) for name in REGULARIZERS}
+    pairs = faces_on_each_edge(faces) if need.get("normal") else None
     starts = torch.tensor([0] + counts).cumsum(0).tolist()
     batch = len(counts)
     for index in range(batch):
@@ -184,6 +189,8 @@ def shape_regularizers(
             result["edge"] = result["edge"] + mesh_edge_loss(meshes) / batch
         if need.get("laplacian"):
             result["laplacian"] = result["laplacian"] + laplacian_smoothing_loss(meshes) / batch
+        if need.get("normal"):
+            result["normal"] = result["normal"] + normal_consistency(verts_cube[rows].float(), faces, pairs).mean() / batch
         if need.get("offset_l2"):
             result["offset_l2"] = result["offset_l2"] + sum(offset_l2_loss(o[rows]) for o in offsets) / batch
     return result

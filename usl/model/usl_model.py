@@ -26,7 +26,7 @@ from usl.model.backbone import IMAGENET_MEAN, IMAGENET_STD, ShapeSpec
 from usl.model.detector import ImageList, MaskRCNN, MultiScaleRoIAlign
 from usl.model.heads import LayoutHead, LayoutPrediction, ShapeHead, ShapePrediction
 from usl.model.mesh3d_loss import mesh_supervision_loss
-from usl.model.multiview_loss import multiview_silhouette_loss, shape_regularizers
+from usl.model.multiview_loss import REGULARIZERS, multiview_silhouette_loss, shape_regularizers
 from usl.model.outputs import ObjectPredictions
 from usl.model.pretrained import init_detector, print_report
 
@@ -128,7 +128,7 @@ class USLModel(nn.Module):
 
     # ------------------------------------------------------------------ training
     def forward(self, samples: list[MultiViewSample], iteration: int = 0, diagnostics: bool = False) -> dict[str, Tensor]:
-        """Weighted losses (``det/*``, ``l3d``, ``edge``, ``offset_l2``, ``laplacian``), their sum
+        """Weighted losses (``det/*``, ``l3d``, ``edge``, ``offset_l2``, ``laplacian``, ``normal``), their sum
         ``loss``, and detached statistics under ``stat/*``.
 
         ``iteration`` drives the loss schedules (``loss.dist_schedule``). ``diagnostics`` adds the
@@ -160,7 +160,7 @@ class USLModel(nn.Module):
                 )
             else:
                 l3d, stats = self._silhouette_loss(outputs, samples, iteration, diagnostics)
-            need = {name: bool(getattr(weights, name) * weights.mu_reg) for name in ("edge", "offset_l2", "laplacian")}
+            need = {name: bool(getattr(weights, name) * weights.mu_reg) for name in REGULARIZERS}
             regs = shape_regularizers(outputs.shape.verts, outputs.shape.offsets, self.faces, outputs.counts, need)
             # Keep both heads in the graph even for a batch without objects (DDP needs every gradient).
             l3d = l3d + 0.0 * (outputs.layout.z.sum() + outputs.layout.rho.sum() + outputs.shape.verts.sum())
