@@ -169,8 +169,8 @@ def _gather_pairs(
 def shape_regularizers(
     verts_cube: Tensor, offsets: list[Tensor], faces: Tensor, counts: list[int], need: dict[str, bool]
 ) -> dict[str, Tensor | None]:
-    """Edge, ½‖dV‖² (summed over stages, pre-tanh), Laplacian and normal-consistency terms, each a per-image mean
-    over objects averaged over the batch. Terms not in ``need`` are None (not computed).
+    """Edge, ½‖dV‖² (summed over stages, pre-tanh), Laplacian and normal-consistency terms, each a
+    per-image mean over objects averaged over the batch. Terms not in ``need`` are None (not computed).
 
     Regularizers act on the normalized-cube meshes, so their scale does not depend on layout.
     """
