@@ -296,10 +296,9 @@ class OptimConfig:
     lr: float = 0.01  # base learning rate (for the whole batch of all processes)
     momentum: float = 0.9  # SGD momentum (ignored by Adam)
     weight_decay: float = 1e-4  # L2 penalty on the weights
-    schedule: str = "step"  # "step" (x gamma at each of steps) | "cosine" (half cosine to final_factor) | "constant"
+    schedule: str = "step"  # "step" (x gamma at each of steps) | "constant"
     steps: tuple[int, ...] = ()  # iterations at which the "step" schedule multiplies the rate by gamma
     gamma: float = 0.1  # factor of each step
-    final_factor: float = 0.0  # "cosine": the rate at max_iter, as a fraction of lr
     warmup_iters: int = 0  # linear warm-up length (0: none)
     warmup_factor: float = 0.001  # rate at iteration 0 of the warm-up, as a fraction of lr
     max_iter: int = 1000  # iterations to train
@@ -310,9 +309,7 @@ class OptimConfig:
 
     def __post_init__(self) -> None:
         _check_choice("optim.name", self.name, ("sgd", "adam"))
-        _check_choice("optim.schedule", self.schedule, ("step", "cosine", "constant"))
-        if not 0.0 <= self.final_factor <= 1.0:
-            raise ConfigError(f"optim.final_factor: must be in [0, 1], got {self.final_factor}")
+        _check_choice("optim.schedule", self.schedule, ("step", "constant"))
         _check_positive("optim.max_iter", self.max_iter)
         bad = {k: v for k, v in self.lr_mult.items() if not v > 0}
         if bad:
@@ -329,9 +326,6 @@ class TrainConfig:
     checkpoint_every: int = 1000  # iterations between checkpoints (and one at the end)
     keep_checkpoints: int = 3  # newest checkpoints kept in the run folder (0 keeps all)
     cpu_threads: int = 0  # torch intra-op threads per process; 0 leaves torch's default
-    # Exponential moving average of the weights, updated after every step (0: off). Checkpoints
-    # then also hold the average, which validation, usl-eval and usl-predict use.
-    ema_decay: float = 0.0
     # Stop when more than this fraction of the last ``skip_window`` steps were skipped as non-finite
     # (corrupt data or divergence, not a rare outlier); 1.0 never stops.
     max_skipped_fraction: float = 0.25
@@ -342,8 +336,6 @@ class TrainConfig:
         _check_choice("train.device", self.device, ("auto", "cpu", "cuda"))
         _check_positive("train.batch_size", self.batch_size)
         _check_positive("train.skip_window", self.skip_window)
-        if not 0.0 <= self.ema_decay < 1.0:
-            raise ConfigError(f"train.ema_decay: {self.ema_decay} is not in [0, 1)")
         if not 0.0 <= self.max_skipped_fraction <= 1.0:
             raise ConfigError(f"train.max_skipped_fraction: {self.max_skipped_fraction} is not in [0, 1]")
 

@@ -174,24 +174,3 @@ def test_clear_errors(records, tmp_path, capsys):
     torch.save({"weights": torch.zeros(1)}, foreign)
     with pytest.raises(CheckpointError, match="not a usl checkpoint"):
         load_model(foreign)
-
-
-def test_ema_weights_are_the_moving_average_of_each_steps_weights_and_resume_exactly(records, tmp_path):
-    """train.ema_decay: the checkpoint's average equals d * previous + (1 - d) * this step's
-    weights (the first step's weights at step 1), survives a resume, and is what load_model gives."""
-    common = ["train.batch_size=4", "train.checkpoint_every=1", "train.keep_checkpoints=0", "train.ema_decay=0.5"]
-    assert main(_args(records, tmp_path / "full", *common, "optim.max_iter=3")) == 0
-    assert main(_args(records, tmp_path / "cut", *common, "optim.max_iter=2")) == 0
-    assert main(["--resume", str(tmp_path / "cut"), "optim.max_iter=3"]) == 0
-    steps = [read_checkpoint(tmp_path / "full" / "checkpoints" / f"model_{i:07d}.pt") for i in (1, 2, 3)]
-    expected = {k: v for k, v in steps[0]["model"].items() if v.is_floating_point()}  # not step counters
-    for step in steps[1:]:
-        expected = {k: 0.5 * v + 0.5 * step["model"][k] for k, v in expected.items()}
-    resumed = read_checkpoint(tmp_path / "cut")["model_ema"]
-    model, _ = load_model(tmp_path / "full")
-    for name, value in model.state_dict().items():
-        if name not in expected:
-            continue
-        assert torch.allclose(value.float(), expected[name].float(), atol=1e-6), name
-        assert torch.allclose(resumed[name].float(), value.float(), atol=1e-6), name
-    assert not torch.equal(steps[-1]["model_ema"]["shape_head.global_mlp.0.weight"], steps[-1]["model"]["shape_head.global_mlp.0.weight"])

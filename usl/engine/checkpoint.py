@@ -109,7 +109,7 @@ def load_checkpoint(checkpoint_path: str | Path, device: str | torch.device = "c
     config = checkpoint_config(payload)
     model = USLModel(config.model, config.loss, load_init_weights=False)  # the checkpoint holds every weight
     try:
-        model.load_state_dict(payload.get("model_ema", payload["model"]))  # the average, when trained with one
+        model.load_state_dict(payload["model"])
     except RuntimeError as exc:
         raise CheckpointError(f"{payload['path']}: weights do not fit the model its config describes: {exc}") from exc
     return LoadedCheckpoint(model.to(device).eval(), config, Path(payload["path"]).resolve(), int(payload.get("iteration", -1)))

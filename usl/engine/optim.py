@@ -1,7 +1,6 @@
 """Optimizer and learning-rate schedule from ``OptimConfig`` (the paper's recipe table)."""
 from __future__ import annotations
 
-import math
 from bisect import bisect_right
 from typing import Iterable
 
@@ -31,8 +30,7 @@ def build_optimizer(named_params: Iterable[tuple[str, nn.Parameter]], cfg: Optim
 
 
 class LRFactor:
-    """Linear warmup from ``warmup_factor`` to 1, then x ``gamma`` at each of ``steps`` ("step"),
-    or a half cosine from 1 at iteration 0 to ``final_factor`` at ``max_iter`` ("cosine").
+    """Linear warmup from ``warmup_factor`` to 1, then x ``gamma`` at each of ``steps`` ("step").
 
     Holds plain numbers only: LambdaLR saves a callable's ``__dict__`` in its state, and
     checkpoints must load with ``torch.load(weights_only=True)``.
@@ -41,17 +39,11 @@ class LRFactor:
     def __init__(self, cfg: OptimConfig):
         self.steps = sorted(cfg.steps) if cfg.schedule == "step" else []
         self.gamma = cfg.gamma
-        self.cosine = cfg.schedule == "cosine"
-        self.final_factor = cfg.final_factor
-        self.max_iter = cfg.max_iter
         self.warmup_iters = cfg.warmup_iters
         self.warmup_factor = cfg.warmup_factor
 
     def __call__(self, iteration: int) -> float:
         factor = self.gamma ** bisect_right(self.steps, iteration)
-        if self.cosine:
-            progress = min(iteration / self.max_iter, 1.0)
-            factor = self.final_factor + (1 - self.final_factor) * 0.5 * (1 + math.cos(math.pi * progress))
         if iteration < self.warmup_iters:
             alpha = iteration / self.warmup_iters
             factor *= self.warmup_factor * (1 - alpha) + alpha

@@ -98,7 +98,7 @@ class Trainer:
             run_dir.mkdir(parents=True, exist_ok=True)
             save_config(cfg, run_dir / "config.yaml")
             self.log = RunLog(run_dir, self.iteration if resume is not None else None)
-            self.feedback = TrainingFeedback(cfg, run_dir, self.step.eval_model, self.iteration, resume is not None)
+            self.feedback = TrainingFeedback(cfg, run_dir, self.model, self.iteration, resume is not None)
 
     @property
     def model(self) -> USLModel:

@@ -8,7 +8,6 @@ from typing import Any
 
 import torch
 from torch.nn.parallel import DistributedDataParallel
-from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 
 from usl.config import Config
 from usl.data import MultiViewSample
@@ -37,14 +36,6 @@ class TrainStep:
         self.amp_dtype = AMP_DTYPES.get(cfg.train.amp) if info.device.type == "cuda" else None
         self.scaler = torch.amp.GradScaler("cuda", enabled=self.amp_dtype is torch.float16)
         self.skipped = 0
-        self.ema: AveragedModel | None = None
-        if cfg.train.ema_decay > 0:
-            self.ema = AveragedModel(self.model, multi_avg_fn=get_ema_multi_avg_fn(cfg.train.ema_decay), use_buffers=True)
-
-    @property
-    def eval_model(self) -> USLModel:
-        """The weights to validate and export: the moving average when ``train.ema_decay`` > 0."""
-        return self.ema.module if self.ema is not None else self.model
 
     def state_dict(self) -> dict[str, Any]:
         return {
@@ -53,7 +44,6 @@ class TrainStep:
             "scheduler": self.scheduler.state_dict(),
             "scaler": self.scaler.state_dict(),
             "skipped_steps": self.skipped,
-            **({"model_ema": self.ema.module.state_dict()} if self.ema is not None else {}),
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
@@ -62,9 +52,6 @@ class TrainStep:
         self.scheduler.load_state_dict(state["scheduler"])
         self.scaler.load_state_dict(state["scaler"])
         self.skipped = int(state.get("skipped_steps", 0))
-        if self.ema is not None:
-            self.ema.module.load_state_dict(state["model_ema"])
-            self.ema.n_averaged.fill_(max(1, int(state["iteration"])))
 
     def __call__(self, batch: list[MultiViewSample], diagnostics: bool = False) -> dict[str, float]:
         """Forward, backward, clip, guard, step; returns the losses and ``grad_norm``, ``skipped``
@@ -83,8 +70,6 @@ class TrainStep:
         ok = bool(all_reduce_min(finite.float().reshape(1)).item() > 0)  # every rank skips together
         if ok:
             self.scaler.step(self.optimizer)
-            if self.ema is not None:
-                self.ema.update_parameters(self.model)
         else:
             self.skipped += 1
         self.scaler.update()
