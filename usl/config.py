@@ -228,18 +228,9 @@ class RenderConfig:
     # (SoftRas), which skips the per-pixel depth sort
     faces_per_pixel: int | None = _SOFT.faces_per_pixel
     padding: float = 0.05  # window margin, as a fraction of its longer side
-    # Factor on sigma by iteration (piecewise linear through iters/values; empty = 1). Where two
-    # faces meet a silhouette edge their soft values add up, so the soft silhouette's 0.5 contour
-    # lies ~sqrt(sigma) outside the mesh's hard one, and meshes fitted with a wide sigma come out
-    # smaller than their masks when drawn hard, as usl-eval draws them (at 1e-3: 13% of the area,
-    # tests/render/test_soft_hard_contour.py). Lowering sigma late sharpens them once the wide one
-    # has done its work. E.g. {iters: [700, 1000], values: [1.0, 0.2]}.
-    sigma_schedule: PiecewiseLinear = field(default_factory=PiecewiseLinear)
 
-    def settings(self, iteration: int = 0) -> SoftRasterSettings:
-        """The soft rasterizer's settings at ``iteration`` (``sigma`` times ``sigma_schedule``)."""
-        sigma = self.sigma * self.sigma_schedule(iteration)
-        return SoftRasterSettings(sigma=sigma, blur_radius=self.blur_radius, faces_per_pixel=self.faces_per_pixel)
+    def settings(self) -> SoftRasterSettings:
+        return SoftRasterSettings(sigma=self.sigma, blur_radius=self.blur_radius, faces_per_pixel=self.faces_per_pixel)
 
 
 @dataclass

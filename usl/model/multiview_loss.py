@@ -112,7 +112,7 @@ def multiview_silhouette_loss(
     face_window = torch.arange(num_pairs, device=faces.device).repeat_interleave(faces.shape[0])
     render = cfg.render
     rendered = render_dynamic(
-        verts.reshape(-1, 3), faces_packed, face_window, K, pairs.masks, render.resolution, render.settings(iteration),
+        verts.reshape(-1, 3), faces_packed, face_window, K, pairs.masks, render.resolution, render.settings(),
         render.padding, ignore_masks=pairs.occluders if cfg.ignore_occluders else None,
     )
     xent = silhouette_bce_loss(rendered.soft, rendered.target, rendered.valid, cfg.iou_threshold)
