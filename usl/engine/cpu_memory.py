@@ -27,7 +27,7 @@ TRIM_THRESHOLD_BYTES = 1 << 30
 
 def retain_freed_memory() -> bool:
     """Raise glibc's mmap and trim thresholds for this process; False where there is no glibc
-    (macOS, musl) or it refused, in which case nothing changed."""
+    (macOS; musl's mallopt does nothing) or glibc refused a value."""
     if not sys.platform.startswith("linux"):
         return False
     try:
