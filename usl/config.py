@@ -326,9 +326,9 @@ class TrainConfig:
     checkpoint_every: int = 1000  # iterations between checkpoints (and one at the end)
     keep_checkpoints: int = 3  # newest checkpoints kept in the run folder (0 keeps all)
     cpu_threads: int = 0  # torch intra-op threads per process; 0 leaves torch's default
-    # On CPU, keep freed heap memory in the process (glibc's mmap and trim thresholds raised,
-    # usl.engine.cpu_memory): steps stop re-faulting their tensors page by page. The process
-    # keeps its peak memory; false leaves glibc's defaults.
+    # On CPU, keep freed heap memory in the process (glibc's mmap and trim thresholds raised by
+    # TrainStep, usl.engine.cpu_memory): steps stop re-faulting their tensors page by page. The
+    # process keeps its peak memory; false leaves glibc's defaults.
     retain_freed_memory: bool = True
     # Stop when more than this fraction of the last ``skip_window`` steps were skipped as non-finite
     # (corrupt data or divergence, not a rare outlier); 1.0 never stops.

@@ -17,7 +17,6 @@ from usl.model.usl_model import USLModel
 from usl.records import RecordsDataset
 
 from .checkpoint import CheckpointError, rng_state, set_rng_state, write_run_checkpoint
-from .cpu_memory import retain_freed_memory
 from .distributed import DistInfo, all_gather_objects, barrier
 from .feedback import TrainingFeedback
 from .run_log import RunLog
@@ -74,8 +73,6 @@ class Trainer:
         self.cfg, self.run_dir, self.info = cfg, run_dir, info
         if cfg.train.cpu_threads > 0:
             torch.set_num_threads(cfg.train.cpu_threads)
-        if cfg.train.retain_freed_memory and info.device.type == "cpu":
-            retain_freed_memory()
         records = RecordsDataset(cfg.data.root, cfg.data.train_split, verify=cfg.data.verify)
         fill_dataset_fields(cfg, records)
         seed_everything(cfg.train.seed, info.rank)

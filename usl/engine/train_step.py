@@ -13,6 +13,7 @@ from usl.config import Config
 from usl.data import MultiViewSample
 from usl.model.usl_model import USLModel
 
+from .cpu_memory import retain_freed_memory
 from .distributed import DistInfo, all_reduce_min
 from .optim import build_optimizer, build_scheduler
 
@@ -22,6 +23,10 @@ AMP_DTYPES = {"bfloat16": torch.bfloat16, "float16": torch.float16}
 class TrainStep:
     def __init__(self, cfg: Config, info: DistInfo):
         self.cfg, self.info = cfg, info
+        # before the model exists, so its allocations follow the policy too; here, not in the
+        # Trainer, so scripts/bench_train.py times the step usl-train runs
+        if cfg.train.retain_freed_memory and info.device.type == "cpu":
+            retain_freed_memory()
         self.model = USLModel(cfg.model, cfg.loss).to(info.device)
         self.net: torch.nn.Module = self.model
         if info.distributed:
