@@ -227,11 +227,10 @@ class RenderConfig:
     # the nearest faces by depth blended per pixel; null blends every face within the blur radius
     # (SoftRas), which skips the per-pixel depth sort
     faces_per_pixel: int | None = _SOFT.faces_per_pixel
-    logit_offset: float = _SOFT.logit_offset
     padding: float = 0.05  # window margin, as a fraction of its longer side
 
     def settings(self) -> SoftRasterSettings:
-        return SoftRasterSettings(sigma=self.sigma, blur_radius=self.blur_radius, faces_per_pixel=self.faces_per_pixel, logit_offset=self.logit_offset)
+        return SoftRasterSettings(sigma=self.sigma, blur_radius=self.blur_radius, faces_per_pixel=self.faces_per_pixel)
 
 
 @dataclass

@@ -65,7 +65,6 @@ class SoftRasterSettings:
     sigma: float = 1e-3
     blur_radius: float = 1e-3
     faces_per_pixel: int | None = 10
-    logit_offset: float = 0.0
     near: float = DEFAULT_NEAR
     chunk_size: int = DEFAULT_CHUNK_SIZE
 
@@ -115,18 +114,18 @@ def rasterize_soft(
     checkpointed = torch.is_grad_enabled() and screen.plane.requires_grad and face.numel() > settings.chunk_size
     # At least one (possibly empty) chunk, so a blank render stays attached to the graph.
     for start in range(0, max(face.numel(), 1), settings.chunk_size):
-        args = (screen.plane, face[start : start + settings.chunk_size], pixel[start : start + settings.chunk_size], height, width, scale, settings.logit_offset)
+        args = (screen.plane, face[start : start + settings.chunk_size], pixel[start : start + settings.chunk_size], height, width, scale)
         terms = checkpoint(_log_transparency_terms, *args, use_reentrant=False) if checkpointed else _log_transparency_terms(*args)
         log_transparency = log_transparency.index_add(0, args[2], terms)
     return (-torch.expm1(log_transparency)).view(num_windows, height, width)
 
 
-def _log_transparency_terms(plane: Tensor, face: Tensor, pixel: Tensor, height: int, width: int, scale: float, offset: float) -> Tensor:
+def _log_transparency_terms(plane: Tensor, face: Tensor, pixel: Tensor, height: int, width: int, scale: float) -> Tensor:
     """log(1 - p) = log sigmoid(d / sigma) for each (face, flat pixel) pair; ``plane`` is
     the (16, F) table of :class:`Plane` rows."""
     px, py = pixel_centres(pixel % width, (pixel // width) % height, plane.dtype)
     dist, _ = signed_sq_distance(px, py, Plane(*gather_rows(plane, face)))
-    return F.logsigmoid(dist * scale + offset)
+    return F.logsigmoid(dist * scale)
 
 
 @torch.no_grad()
@@ -221,7 +220,7 @@ def rasterize_soft_dense(
             depth = perspective_depth(tuple(b.detach() for b in bary), Depths(*(d.detach() for d in screen.depths_of(in_window))), clip=True)
             depth = torch.where(candidate, _ordering_depth(depth), torch.inf)
             candidate = candidate & _nearest_dense(depth, settings.faces_per_pixel)
-        log_t = torch.where(candidate, F.logsigmoid(dist / settings.sigma + settings.logit_offset), torch.zeros_like(dist))
+        log_t = torch.where(candidate, F.logsigmoid(dist / settings.sigma), torch.zeros_like(dist))
         silhouettes.append(-torch.expm1(log_t.sum(1)).view(height, width))
     return torch.stack(silhouettes) if silhouettes else verts.new_zeros(0, height, width)
 
