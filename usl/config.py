@@ -277,7 +277,6 @@ class LossConfig:
     # left out of this object's l_xent (it may be hidden there), instead of teaching it to carve
     # away what an occluder covers. False: the paper's per-object comparison.
     ignore_occluders: bool = False
-    occluder_weight: float = 0.0
     # "2d": the paper's multi-view silhouette loss L_3D. "3d": Mesh R-CNN's losses against the
     # objects table's true meshes instead (Table 1's "Mesh R-CNN (3D sup.)" upper bound, Scene-Shapes
     # only): Chamfer, normal and edge terms on points in the input camera's frame (loss.mesh3d).

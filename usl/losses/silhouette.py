@@ -151,9 +151,9 @@ def silhouette_bce_loss(
         shapes = [tuple(t.shape) for t in (soft, true) + (() if valid is None else (valid,))]
         raise ValueError(f"silhouette_bce_loss: soft, true (and valid) must have one shape, got {shapes}")
     target = true.to(soft.dtype)
-    cells = torch.ones_like(soft, dtype=torch.bool) if valid is None else valid >= 1
+    cells = torch.ones_like(soft, dtype=torch.bool) if valid is None else valid.bool()
     per_cell = F.binary_cross_entropy(soft, target, reduction="none")
-    weight = (cells if valid is None else valid).to(soft.dtype).flatten(1)
+    weight = cells.to(soft.dtype).flatten(1)
     loss = (per_cell.flatten(1) * weight).sum(1) / weight.sum(1).clamp(min=1)
     with torch.no_grad():
         pred_fg = (soft > 0.5).flatten(1) & cells.flatten(1)

@@ -113,7 +113,7 @@ def multiview_silhouette_loss(
     render = cfg.render
     rendered = render_dynamic(
         verts.reshape(-1, 3), faces_packed, face_window, K, pairs.masks, render.resolution, render.settings(),
-        render.padding, ignore_masks=pairs.occluders if cfg.ignore_occluders else None, ignore_weight=cfg.occluder_weight,
+        render.padding, ignore_masks=pairs.occluders if cfg.ignore_occluders else None,
     )
     xent = silhouette_bce_loss(rendered.soft, rendered.target, rendered.valid, cfg.iou_threshold)
     is_input = torch.cat(pairs.is_input)

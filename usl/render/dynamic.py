@@ -59,7 +59,6 @@ def render_dynamic(
     min_size: float = 4.0,
     true_boxes: Tensor | None = None,
     ignore_masks: Sequence[Tensor] | None = None,
-    ignore_weight: float = 0.0,
 ) -> DynamicRender:
     """Soft silhouettes and matching true-mask crops for P (object, view) pairs.
 
@@ -98,8 +97,7 @@ def render_dynamic(
         if len(ignore_masks) != num_pairs:
             raise ValueError(f"render_dynamic: K has {num_pairs} pairs but ignore_masks has {len(ignore_masks)}")
         hidden = torch.stack([resample_mask_area(m, w.tolist(), resolution) for m, w in zip(ignore_masks, windows)])
-        observed = (hidden <= 0.5).to(valid.device)
-        valid = valid & observed if not ignore_weight else valid * torch.where(observed, 1.0, ignore_weight)
+        valid = valid & (hidden <= 0.5).to(valid.device)
     return DynamicRender(
         soft=soft,
         target=target.to(device=soft.device, dtype=soft.dtype),
