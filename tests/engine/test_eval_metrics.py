@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -179,3 +180,42 @@ def test_objects_out_of_sight_fall_back_to_projected_vertices(dataset):
         assert back["depth_l1_input"] is None or math.isnan(back["depth_l1_input"])
     counts = {s.name: s.counts for s in run.summaries}
     assert counts[behind.name]["depth_l1_input"] == 2 and counts[behind.name]["mask_iou_input"] == 4
+
+
+class _Mislabelled(PerfectPredictor):
+    """The true meshes with every label shifted to another class: per-category means must still group
+    objects by their true category."""
+
+    name = "Mislabelled"
+
+    def __call__(self, inputs):
+        return [replace(p, labels=(p.labels + 1) % 3) for p in super().__call__(inputs)]
+
+
+def test_per_category_means_match_pandas_on_objects_jsonl(dataset, tmp_path):
+    import pandas as pd
+
+    fixed = spec_baselines(load_dataset_spec("scene_shapes")["baselines"])["fixed"]
+    run = run_evaluation(dataset, "val", [fixed, _Mislabelled()], EvalConfig(input_views="all", **FAST), progress=False)
+    paths = write_report(tmp_path, run.header, run.summaries, run.rows, run.layout)
+    objects = pd.read_json(paths["objects"], lines=True)
+    # the true category of each instance, read from the records themselves
+    records = RecordsDataset(dataset, "val")
+    names = {c["id"]: c["name"] for c in records.categories}
+    truth = {(s, i["instance_id"]): names[i["category_id"]] for s in records.scene_ids
+             for f in records.read_scene(s) for i in f["instances"]}
+    assert [truth[(r.scene_id, r.instance_id)] for r in objects.itertuples()] == objects["category"].tolist()
+    assert objects["category"].nunique() == 3
+    document = json.loads(paths["metrics"].read_text())
+    for predictor in document["predictors"]:
+        own = objects[objects["predictor"] == predictor["name"]]
+        expected = own.groupby("category")[["mask_iou_input", "mask_iou_views", "chamfer", "f1"]].mean()
+        assert sorted(predictor["categories"]) == sorted(expected.index)
+        for category, means in expected.iterrows():
+            got = predictor["categories"][category]
+            assert got["num_objects"] == int((own["category"] == category).sum())
+            for metric, value in means.items():
+                assert got["metrics"][metric] == pytest.approx(value, rel=1e-9)
+    table = paths["table"].read_text()
+    assert "Per true category:" in table and "| Model | Category | Objects | Ch. ↓ |" in table
+    assert table.count("| Mislabelled |") == 1 + 3 and table.count("| Fixed depth |") == 1 + 3

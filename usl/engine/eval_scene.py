@@ -116,7 +116,7 @@ def evaluate_scene(
     _score_all(meta, inputs, positions, predictions, config, device)
     rows = []
     for pr in predictions:
-        rows += _object_rows(pr, inputs[pr.inp], positions[pr.inp], predictors[pr.predictor].name, config, device)
+        rows += _object_rows(pr, inputs[pr.inp], positions[pr.inp], predictors[pr.predictor].name, categories, config, device)
     return SceneOutcome(rows, inputs, positions, predictions)
 
 
@@ -196,10 +196,14 @@ def _nanmean(values: list[float]) -> float:
 
 
 def _object_rows(
-    pr: Prediction, inp: EvalInput, position: int, name: str, config: EvalConfig, device: torch.device
+    pr: Prediction, inp: EvalInput, position: int, name: str, categories: CategoryIndex, config: EvalConfig,
+    device: torch.device,
 ) -> list[dict[str, Any]]:
+    """One row per scored object. ``label`` is the predicted class, ``category`` the true one's name (what
+    per-category means group by, so a detector's wrong labels do not move its objects between categories)."""
     pred, frame = pr.pred, inp.frame
     shape3d = _shape_metrics(pred, inp, config, device)
+    true_label = dict(zip(frame.instance_ids.tolist(), frame.labels.tolist()))
     rows = []
     for o, iid in enumerate(pred.instance_ids.tolist()):
         if iid < 0:
@@ -208,6 +212,7 @@ def _object_rows(
         others = [score for v, score in pr.scores[o].items() if v != position]
         row = {
             "predictor": name, "scene_id": frame.scene_id, "input_view": frame.view_id, "instance_id": iid,
+            "category": categories.names[true_label[iid]],
             "label": int(pred.labels[o]), "score": float(pred.scores[o]), "z": float(pred.z[o]), "rho": float(pred.rho[o]),
             "mask_iou_input": own[0], "box_giou_input": own[1], "depth_l1_input": own[2],
             "mask_iou_views": _nanmean([s[0] for s in others]),

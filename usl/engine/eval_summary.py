@@ -49,6 +49,9 @@ class PredictorSummary:
     metrics: dict[str, float | None] = field(default_factory=dict)
     counts: dict[str, int] = field(default_factory=dict)
     detection: dict[str, float] = field(default_factory=dict)  # AP numbers and counts, detectors only
+    # true category name -> {"num_objects", "metrics", "counts"}: the same means over that category's
+    # objects (a mean over all objects hides which kind of shape a model fails on)
+    categories: dict[str, dict[str, Any]] = field(default_factory=dict)
 
     def as_dict(self) -> dict[str, Any]:
         return dict(self.__dict__)
@@ -80,6 +83,10 @@ def summarize(
             bool(predictor.uses_detections), num_objects=len(own),
         )
         summary.metrics, summary.counts = mean_over_objects(own)
+        for category in sorted({r["category"] for r in own if "category" in r}):
+            members = [r for r in own if r.get("category") == category]
+            means, counts = mean_over_objects(members)
+            summary.categories[category] = {"num_objects": len(members), "metrics": means, "counts": counts}
         if predictor.uses_detections:
             counts = detection_counts.get(predictor.name, DetectionCounts())
             summary.detection = {**counts.__dict__, **average_precision.get(predictor.name, {})}

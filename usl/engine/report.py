@@ -5,6 +5,7 @@ Table layouts (rows: predictors in evaluation order):
 * ``hypersim`` (Table 2): Predicts layout / shape, Box gIoU, Mask IoU, Depth L1 (down), each input / views.
 * ``scannet`` (ScanNet table): Predicts, Box gIoU and Mask IoU, input / views.
 Predictors that detect their own objects add a detection table (COCO AP and AP50, box and mask).
+Datasets with several categories add the same columns per true category (``category_table``).
 """
 from __future__ import annotations
 
@@ -86,7 +87,22 @@ def markdown_table(summaries: Sequence[PredictorSummary], layout: str) -> str:
             for s in detectors
         ]
         text += "\n\n" + _markdown(det_header, det_rows, [":---"] + [":---:"] * 6)
-    return text + "\n"
+    per_category = category_table(summaries, layout)
+    return text + ("\n\nPer true category:\n\n" + per_category if per_category else "") + "\n"
+
+
+def category_table(summaries: Sequence[PredictorSummary], layout: str) -> str:
+    """The layout's columns per (predictor, true category), or "" when the objects are of one category."""
+    names = sorted({name for s in summaries for name in s.categories})
+    if len(names) < 2:
+        return ""
+    columns = COLUMNS[layout]
+    rows = [
+        [s.name, name, str(s.categories[name]["num_objects"])] + [_cell(s.categories[name]["metrics"].get(c.metric), c) for c in columns]
+        for s in summaries for name in names if name in s.categories
+    ]
+    header = ["Model", "Category", "Objects"] + [c.title for c in columns]
+    return _markdown(header, rows, [":---", ":---"] + [":---:"] * (len(header) - 2))
 
 
 def json_safe(value: Any) -> Any:
