@@ -87,7 +87,7 @@ def fit_sample(sample, cfg, steps: int, lr: float, ico_level: int) -> FittedMesh
 class FreeMeshOracle:
     """A usl-eval predictor that fits free meshes to each input view's scene (the views
     ``data.num_views`` and ``data.view_sampling`` choose) instead of predicting them: ground-truth boxes,
-    no network. Needs ``data.max_objects=0`` and ``data.flip_prob=0`` (set by ``main``)."""
+    no network. Needs every object, unmirrored: ``data.max_objects=0``, ``data.flip_prob=0`` (``main`` sets them)."""
 
     name = "Free meshes (fitted, oracle)"
     predicts_layout = True
@@ -95,6 +95,9 @@ class FreeMeshOracle:
     uses_detections = False
 
     def __init__(self, dataset: MultiViewDataset, cfg, steps: int, lr: float, ico_level: int):
+        if cfg.data.max_objects or cfg.data.flip_prob:
+            raise SystemExit("FreeMeshOracle: fits need data.max_objects=0 and data.flip_prob=0 (mirrored views would be "
+                             "fitted in a reflected camera frame)")
         self.dataset, self.cfg, self.steps, self.lr, self.ico_level = dataset, cfg, steps, lr, ico_level
         self.index = {item: i for i, item in enumerate(dataset.items)}
 
@@ -106,10 +109,10 @@ class FreeMeshOracle:
             if (frame.scene_id, position) not in self.index:
                 raise SystemExit(f"{frame.scene_id} view {frame.view_id} is not an input view of the fitted dataset "
                                  "(data.input_view_stride must be 1)")
-            sample = self.dataset[self.index[(frame.scene_id, position)]]
-            if not torch.equal(sample.frame.instance_ids[sample.object_rows], frame.instance_ids):
-                raise SystemExit(f"{frame.scene_id} view {frame.view_id}: the fitted sample has other objects")
             with torch.inference_mode(False), torch.enable_grad():  # usl-eval calls predictors without gradients
+                sample = self.dataset[self.index[(frame.scene_id, position)]]
+                if not torch.equal(sample.frame.instance_ids[sample.object_rows], frame.instance_ids):
+                    raise SystemExit(f"{frame.scene_id} view {frame.view_id}: the fitted sample has other objects")
                 fit = fit_sample(sample, self.cfg, self.steps, self.lr, self.ico_level)
             n = len(fit.verts)
             out.append(ObjectPredictions(
@@ -128,14 +131,15 @@ def score(args, cfg, dataset: MultiViewDataset, level: int) -> None:
     out = Path(args.score)
     run = run_evaluation(args.data, args.split, predictors, config, max_scenes=args.max_scenes,
                          pictures_dir=out / "pictures", num_pictures=args.pictures)
+    views = {key: getattr(cfg.data, key) for key in ("num_views", "view_sampling", "flip_prob", "max_objects")}  # as fitted
     header = {**run.header, "free_mesh_fit": {"steps": args.steps, "lr": args.lr, "ico_level": level,
-                                              "overrides": list(args.overrides)}}
+                                              "overrides": list(args.overrides), "data": views}}
     paths = write_report(out, header, run.summaries, run.rows, run.layout, {"pictures": "pictures/index.md"})
     print(f"ico level {level}, {args.steps} steps, overrides: {' '.join(args.overrides) or '(recipe)'}\n")
     print(paths["table"].read_text())
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("data", help="Scene-Shapes records folder")
     p.add_argument("--split", default="train")
@@ -149,11 +153,11 @@ def main() -> None:
     p.add_argument("--max-scenes", type=int, default=None, help="with --score: the first N scenes")
     p.add_argument("--pictures", type=int, default=6, help="with --score: input views drawn")
     p.add_argument("overrides", nargs="*", help="key=value config overrides")
-    args = p.parse_intermixed_args()  # overrides may follow options, as in the examples above
+    args = p.parse_intermixed_args(argv)  # overrides may follow options, as in the examples above
     torch.set_num_threads(1)
     # scoring fits every object of every scored input view, unmirrored, as usl-eval hands it over
     scoring = ["data.max_objects=0", "data.flip_prob=0", "data.input_view_stride=1"] if args.score else []
-    cfg = load_config(args.config, [f"data.root={args.data}", *scoring, *args.overrides])
+    cfg = load_config(args.config, [f"data.root={args.data}", *args.overrides, *scoring])  # scoring's settings win
     records = RecordsDataset(args.data, args.split)
     cfg.model.layout_range = LayoutRange(**records.manifest["layout"])
     dataset = MultiViewDataset(records, cfg.data, CategoryIndex(records.categories), seed=0)
