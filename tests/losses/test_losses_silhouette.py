@@ -11,6 +11,7 @@ from usl.losses.silhouette import (
     sample_mask_points,
     silhouette_bce_loss,
     silhouette_chamfer_loss,
+    soft_iou_loss,
 )
 
 DT = torch.float64
@@ -153,3 +154,23 @@ def test_bce_diagnostics_leave_out_the_log_clamp_and_count_unreached_true_pixels
         true_mass = (t[p] * v[p]).sum()
         assert out.unreached[p].item() == pytest.approx((t[p] * v[p] * (s[p] == 0)).sum() / true_mass, rel=1e-9)
     assert (out.loss > out.loss_reached).all()  # the clamp mass is in the plain l_xent only
+
+
+def test_soft_iou_of_binary_silhouettes_is_pycocotools_iou_and_its_gradient_is_exact():
+    """On 0/1 silhouettes 1 - soft_iou_loss is the masks' IoU (pycocotools' on RLE, restricted to the
+    valid cells by zeroing the others in both); on soft values its gradient matches finite differences."""
+    mask_utils = pytest.importorskip("pycocotools.mask")
+    gen = torch.Generator().manual_seed(11)
+    pred = torch.rand(3, 9, 7, generator=gen) > 0.5
+    true = torch.rand(3, 9, 7, generator=gen) > 0.4
+    valid = torch.ones(3, 9, 7, dtype=torch.bool)
+    valid[1, :, 5:] = False  # cells outside the image
+    loss = soft_iou_loss(pred.to(DT), true, valid)
+    for p in range(3):
+        rle = [mask_utils.encode(np.asfortranarray((m[p] & valid[p]).numpy().astype(np.uint8))) for m in (pred, true)]
+        expected = mask_utils.iou([rle[0]], [rle[1]], [False])[0, 0]
+        assert 1.0 - loss[p].item() == pytest.approx(expected, rel=1e-9)
+    assert soft_iou_loss(torch.zeros(1, 4, 4, dtype=DT), torch.zeros(1, 4, 4)).item() == 1.0  # nothing to match: no credit
+    soft = (torch.rand(2, 5, 5, generator=gen, dtype=DT) * 0.9 + 0.05).requires_grad_()
+    target = torch.rand(2, 5, 5, generator=gen, dtype=DT)  # fractional coverage
+    assert torch.autograd.gradcheck(lambda x: soft_iou_loss(x, target, valid[:2, :5, :5]), (soft,))

@@ -8,6 +8,7 @@ from usl.losses.silhouette import (
     sample_mask_points,
     silhouette_bce_loss,
     silhouette_chamfer_loss,
+    soft_iou_loss,
 )
 from usl.losses.schedule import PiecewiseLinear
 from usl.losses.total import LossWeights, combine_losses
@@ -27,4 +28,5 @@ __all__ = [
     "sample_mask_points",
     "silhouette_bce_loss",
     "silhouette_chamfer_loss",
+    "soft_iou_loss",
 ]

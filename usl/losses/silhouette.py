@@ -169,6 +169,18 @@ def silhouette_bce_loss(
     return SilhouetteBCE(loss, iou > iou_threshold, iou, loss_reached, unreached)
 
 
+def soft_iou_loss(soft: Tensor, true: Tensor, valid: Tensor | None = None) -> Tensor:
+    """(P,) 1 - soft IoU between soft silhouettes (P, R, R) and the matching true-mask crops over the
+    ``valid`` cells (SoftRas's silhouette loss). Each pair is normalised by its own union, so an
+    object's thin parts weigh as much as a large object's; 1, with no gradient, where both are empty."""
+    target = true.to(soft.dtype).flatten(1)
+    pred = soft.flatten(1)
+    weight = torch.ones_like(pred) if valid is None else valid.flatten(1).to(soft.dtype)
+    inter = (pred * target * weight).sum(1)
+    union = ((pred + target - pred * target) * weight).sum(1)
+    return 1.0 - inter / union.clamp(min=1e-6)
+
+
 def l2d_loss(dist: Tensor, xent: SilhouetteBCE) -> Tensor:
     """Per-pair l_2D = l_dist + 1[IoU > 0.5] * l_xent (paper Eq. 4).
 

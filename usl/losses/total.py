@@ -36,6 +36,9 @@ class LossWeights:
     # l_dist inside L_3D (times loss.dist_scale and loss.dist_schedule). 0 is Table 1's "w/o
     # l_dist": l_dist is not computed at all, so it adds exactly no gradient
     dist: float = 1.0
+    # soft IoU (SoftRas's silhouette loss, 1 - sum(p t) / sum(p + t - p t)) added to l_xent's pairs
+    # under the same gate: it weighs an object's cells by its own size, so thin parts count
+    soft_iou: float = 0.0
 
     @classmethod
     def recipe(cls, dataset: str) -> LossWeights:

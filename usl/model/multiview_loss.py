@@ -35,6 +35,7 @@ from usl.losses import (
     sample_mask_points,
     silhouette_bce_loss,
     silhouette_chamfer_loss,
+    soft_iou_loss,
 )
 from usl.render import render_dynamic
 
@@ -124,12 +125,15 @@ def multiview_silhouette_loss(
     elif not cfg.gate_input_view:
         xent = xent._replace(gate=xent.gate | is_input)
     weight = torch.cat(pairs.weight)
-    l3d = (l2d_loss(dist_factor * dist, xent) * weight).sum()
+    soft_iou = soft_iou_loss(rendered.soft, rendered.target, rendered.valid) if cfg.weights.soft_iou else None
+    shape_terms = xent if soft_iou is None else xent._replace(loss=xent.loss + cfg.weights.soft_iou * soft_iou)
+    l3d = (l2d_loss(dist_factor * dist, shape_terms) * weight).sum()
     dist_part = (dist_factor * dist * weight).sum()  # the gated l_xent part is the rest of l_2D
     stats = {
         **({"l_dist": dist.detach().mean()} if dist_factor else {}),
         "l_xent": xent.loss.detach().mean(),
         "l_xent_reached": xent.loss_reached.mean(),
+        **({"l_soft_iou": soft_iou.detach().mean()} if soft_iou is not None else {}),
         "unreached": xent.unreached.mean(),
         "xent_gate": xent.gate.float().mean(),
         "iou_input": xent.iou[is_input].mean(),
