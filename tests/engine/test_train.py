@@ -136,6 +136,32 @@ def test_non_finite_loss_skips_the_step(records, tmp_path):
     assert trainer.iteration == 5
 
 
+def test_clipping_caps_the_step_and_the_log_shows_when(records, tmp_path):
+    """One SGD step (no momentum or decay, one rate for every parameter) moves the weights by lr times
+    the gradient, whose norm ``optim.clip_grad_norm`` caps; ``metrics.csv`` logs the norm before
+    clipping (the interval's mean and its largest step) and the share of steps clipped."""
+    sgd = ["optim.name=sgd", "optim.lr=1e-3", "optim.momentum=0", "optim.weight_decay=0", "optim.schedule=constant",
+           "optim.lr_mult={}", "train.batch_size=2"]
+    moved, norms = {}, {}
+    for name, clip in (("free", "0"), ("capped", None)):
+        clip = clip or f"{norms['free'] / 4}"  # a quarter of the unclipped step's norm
+        cfg = load_config("tiny", [f"data.root={records}", *FAST, *sgd, f"optim.clip_grad_norm={clip}"])
+        trainer = Trainer(cfg, tmp_path / name, DistInfo(0, 1, 0, torch.device("cpu")))
+        batch = [trainer.loader.dataset[key] for key in next(iter(trainer.sampler))]
+        before = [p.detach().clone() for p in trainer.step.params]
+        values = trainer.step(batch)
+        moved[name] = torch.cat([(p.detach() - b).flatten() for p, b in zip(trainer.step.params, before)]).norm().item()
+        norms[name] = values["grad_norm"]
+        assert values["clipped"] == (1.0 if name == "capped" else 0.0)
+    assert norms["capped"] == pytest.approx(norms["free"], rel=1e-5)  # the same model, batch and gradient
+    assert moved["free"] == pytest.approx(1e-3 * norms["free"], rel=1e-3)
+    assert moved["capped"] == pytest.approx(1e-3 * norms["free"] / 4, rel=1e-3)
+    assert main(_args(records, tmp_path / "log", "optim.max_iter=3", "train.log_every=3", "train.batch_size=2",
+                      "optim.clip_grad_norm=1e-6", "val.period=0")) == 0
+    (row,) = read_metrics(tmp_path / "log")
+    assert row["clipped"] == 1.0 and row["grad_norm_max"] >= row["grad_norm"] > 0
+
+
 def test_model_api_for_the_evaluator(records, tmp_path):
     assert main(_args(records, tmp_path / "api", "optim.max_iter=1", "train.batch_size=2")) == 0
     model, config = load_model(tmp_path / "api" / "checkpoints" / "model_0000001.pt")

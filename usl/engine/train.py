@@ -51,19 +51,27 @@ def seed_everything(seed: int, rank: int) -> None:
 
 
 class Meter:
-    """Sums of logged values since the last log line."""
+    """Sums of logged values since the last log line, and the largest value of the keys in
+    ``PEAKS``: a mean over the interval hides the single steps that matter there (one gradient
+    spike can stall Adam for hundreds of steps)."""
+
+    PEAKS = ("grad_norm",)
 
     def __init__(self) -> None:
         self.sums: dict[str, float] = {}
         self.counts: dict[str, int] = {}
+        self.peaks: dict[str, float] = {}
 
     def add(self, values: dict[str, float]) -> None:
         for key, value in values.items():
             self.sums[key] = self.sums.get(key, 0.0) + value
             self.counts[key] = self.counts.get(key, 0) + 1
+            if key in self.PEAKS:
+                self.peaks[key] = max(self.peaks.get(key, value), value)
 
     def means(self) -> dict[str, float]:
-        return {k: self.sums[k] / self.counts[k] for k in self.sums}
+        """The interval's means, and ``KEY_max`` for each key in ``PEAKS``."""
+        return {**{k: self.sums[k] / self.counts[k] for k in self.sums}, **{f"{k}_max": v for k, v in self.peaks.items()}}
 
 
 class Trainer:

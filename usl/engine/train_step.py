@@ -59,8 +59,8 @@ class TrainStep:
         self.skipped = int(state.get("skipped_steps", 0))
 
     def __call__(self, batch: list[MultiViewSample], diagnostics: bool = False) -> dict[str, float]:
-        """Forward, backward, clip, guard, step; returns the losses and ``grad_norm``, ``skipped``
-        (and the model's gradient diagnostics when asked: see ``USLModel.forward``)."""
+        """Forward, backward, clip, guard, step; returns the losses, ``grad_norm`` (before clipping),
+        ``clipped``, ``skipped`` (and the model's gradient diagnostics when asked: see ``USLModel.forward``)."""
         device = self.info.device
         batch = [sample.to(device) for sample in batch]
         iteration = self.scheduler.last_epoch  # optimizer steps taken so far, resumed exactly
@@ -83,5 +83,6 @@ class TrainStep:
             warnings.filterwarnings("ignore", message="Detected call of `lr_scheduler.step", category=UserWarning)
             self.scheduler.step()
         values = {k: float(v.detach()) for k, v in losses.items()}
-        values.update(grad_norm=float(grad_norm), skipped=float(not ok))
+        # grad_norm is the norm before clipping; clipped's mean over a log interval is the share of steps clipped
+        values.update(grad_norm=float(grad_norm), clipped=float(0 < clip < float(grad_norm)), skipped=float(not ok))
         return values
