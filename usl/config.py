@@ -286,8 +286,9 @@ class LossConfig:
     def __post_init__(self) -> None:
         _check_choice("loss.xent_gate", self.xent_gate, ("iou", "all"))
         _check_choice("loss.supervision", self.supervision, ("2d", "3d"))
-        if self.weights.dist < 0:
-            raise ConfigError(f"loss.weights.dist: must be >= 0, got {self.weights.dist}")
+        for name in ("dist", "soft_iou"):
+            if getattr(self.weights, name) < 0:
+                raise ConfigError(f"loss.weights.{name}: must be >= 0, got {getattr(self.weights, name)}")
 
 
 @dataclass

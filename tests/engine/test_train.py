@@ -17,7 +17,7 @@ from usl.engine.checkpoint import CheckpointError, load_model, read_checkpoint  
 from usl.engine.distributed import DistInfo  # noqa: E402
 from usl.engine.run_log import read_metrics  # noqa: E402
 from usl.engine.skip_guard import TooManySkippedSteps  # noqa: E402
-from usl.engine.train import Trainer, main, seed_everything  # noqa: E402
+from usl.engine.train import Meter, Trainer, main, seed_everything  # noqa: E402
 from usl.config import load_config  # noqa: E402
 from usl.model.outputs import ObjectPredictions  # noqa: E402
 from usl.model.usl_model import USLModel  # noqa: E402
@@ -160,6 +160,17 @@ def test_clipping_caps_the_step_and_the_log_shows_when(records, tmp_path):
                       "optim.clip_grad_norm=1e-6", "val.period=0")) == 0
     (row,) = read_metrics(tmp_path / "log")
     assert row["clipped"] == 1.0 and row["grad_norm_max"] >= row["grad_norm"] > 0
+
+
+def test_meter_keeps_the_largest_finite_gradient_norm_of_its_interval():
+    """A spike shows in ``grad_norm_max`` whatever the mean; a skipped step's NaN or inf does not
+    (``skipped`` counts it), in either order."""
+    for norms in ([3.0, 400.0, float("nan"), 5.0], [float("inf"), 3.0, 400.0, 5.0]):
+        meter = Meter()
+        for norm in norms:
+            meter.add({"grad_norm": norm, "loss": 1.0})
+        summary = meter.means()
+        assert summary["grad_norm_max"] == 400.0 and summary["loss"] == 1.0
 
 
 def test_model_api_for_the_evaluator(records, tmp_path):

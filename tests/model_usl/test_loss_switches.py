@@ -18,6 +18,7 @@ def setup(tiny_synthetic):
     sample = dataset[SampleKey(0, 0)]
     verts, faces = _true_meshes(records, dataset, sample, 0)
     loss = replace(cfg.loss, gate_input_view=True, ignore_occluders=False, dist_schedule=type(cfg.loss.dist_schedule)())
+    loss = replace(loss, weights=replace(loss.weights, soft_iou=0.0))  # l_xent alone, as the tests below say
     return loss, sample, verts, faces
 
 
@@ -158,6 +159,8 @@ def test_bad_switch_values_are_config_errors():
         load_config("tiny", ["loss.xent_gate=sometimes"])
     with pytest.raises(ConfigError, match="loss.weights.dist"):
         load_config("tiny", ["loss.weights.dist=-1"])
+    with pytest.raises(ConfigError, match="loss.weights.soft_iou"):
+        load_config("tiny", ["loss.weights.soft_iou=-1"])
     with pytest.raises(ConfigError, match="loss.supervision"):
         load_config("tiny", ["loss.supervision=4d"])
     for recipe in ("scene_shapes", "hypersim", "scannet", "tiny"):  # the paper's defaults

@@ -2,6 +2,7 @@
 ``torchrun -m usl.engine.train``): data, guarded steps, logs, checkpoints, exact resume."""
 from __future__ import annotations
 
+import math
 import resource
 import sys
 import time
@@ -66,7 +67,7 @@ class Meter:
         for key, value in values.items():
             self.sums[key] = self.sums.get(key, 0.0) + value
             self.counts[key] = self.counts.get(key, 0) + 1
-            if key in self.PEAKS:
+            if key in self.PEAKS and math.isfinite(value):  # a skipped step's inf/NaN is counted in ``skipped``
                 self.peaks[key] = max(self.peaks.get(key, value), value)
 
     def means(self) -> dict[str, float]:

@@ -84,5 +84,5 @@ class TrainStep:
             self.scheduler.step()
         values = {k: float(v.detach()) for k, v in losses.items()}
         # grad_norm is the norm before clipping; clipped's mean over a log interval is the share of steps clipped
-        values.update(grad_norm=float(grad_norm), clipped=float(0 < clip < float(grad_norm)), skipped=float(not ok))
+        values.update(grad_norm=float(grad_norm), clipped=float(ok and 0 < clip < float(grad_norm)), skipped=float(not ok))
         return values

@@ -70,7 +70,8 @@ class SilhouetteLoss(NamedTuple):
     l_xent can reach, hence the only ones that move z and rho without l_dist), the soft
     silhouettes' mean IoU in the input view and in the other views (``iou_input``,
     ``iou_views``: the training-side counterparts of usl-eval's Mask IoU without occlusion) and
-    l_dist's current factor."""
+    l_dist's current factor. ``xent`` is the gated shape part: l_xent's BCE plus, with
+    ``loss.weights.soft_iou``, the soft-IoU term (``l_soft_iou`` in the stats: its mean over all pairs)."""
 
     l3d: Tensor
     dist: Tensor
