@@ -12,7 +12,9 @@ from usl.engine.run_log import CSV_NAME, read_metrics
 
 CURVES_NAME = "curves.png"
 # Columns of metrics.csv that are not loss terms (statistics under "stat/" are not either).
-NOT_LOSSES = {"iteration", "epoch", "lr", "grad_norm", "grad_norm_max", "clipped", "skipped", "time", "data_time", "peak_mem_mb"}
+NOT_LOSSES = {
+    "iteration", "epoch", "lr", "grad_norm", "grad_norm_max", "clipped", "skipped", "time", "data_time", "peak_mem_mb",
+}
 
 
 def loss_keys(rows: Sequence[dict[str, float]]) -> list[str]:

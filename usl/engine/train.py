@@ -53,8 +53,8 @@ def seed_everything(seed: int, rank: int) -> None:
 
 class Meter:
     """Sums of logged values since the last log line, and the largest value of the keys in
-    ``PEAKS``: a mean over the interval hides the single steps that matter there (one gradient
-    spike can stall Adam for hundreds of steps)."""
+    ``PEAKS``: a mean over the interval hides the single steps that matter there (after a gradient
+    spike a run's training IoUs can stall, README)."""
 
     PEAKS = ("grad_norm",)
 
