@@ -90,3 +90,20 @@ def test_equals_torchvision(aligned, sampling_ratio):
     rois = random_rois(generator, 20, 2, 20, dtype=torch.float32)
     expected = TV.roi_align(features, rois, (4, 4), 0.5, sampling_ratio, aligned)
     torch.testing.assert_close(roi_align(features, rois, (4, 4), 0.5, sampling_ratio, aligned), expected)
+
+
+def test_autocast_pools_in_float32():
+    """Under bf16 autocast (as training on CUDA runs), the pooling stays in float32, as torchvision's
+    autocast rule keeps it: the result is the float32 pooling of the bf16 features, rounded once."""
+    generator = torch.Generator().manual_seed(8)
+    features = torch.randn(2, 3, 12, 10, generator=generator).to(torch.bfloat16).requires_grad_()
+    rois = random_rois(generator, 12, 2, 12, dtype=torch.float32)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        pooled = roi_align(features, rois, (3, 4), 1.0, 2, True)
+        pooled.float().square().sum().backward()
+    reference = features.detach().float().requires_grad_()
+    expected = roi_align(reference, rois, (3, 4), 1.0, 2, True)
+    expected.to(torch.bfloat16).float().square().sum().backward()
+    assert pooled.dtype == torch.bfloat16
+    torch.testing.assert_close(pooled, expected.to(torch.bfloat16), rtol=0, atol=0)
+    torch.testing.assert_close(features.grad.float(), reference.grad, rtol=1e-2, atol=1e-2)

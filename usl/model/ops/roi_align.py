@@ -103,7 +103,11 @@ def roi_align(
         _Chunk.build(index.to(input.device), batch_index, rows, cols, height, width, int(h), int(w))
         for index, h, w in _plan_chunks(window_h, window_w, channels, max_chunk_elements)
     ]
-    return _RoIAlignFunction.apply(input, chunks, (num_rois, out_h, out_w), compute_dtype).to(out_dtype)
+    # In compute_dtype under autocast too (as torchvision's autocast rule does): autocast would run
+    # the pooling matmuls in bf16/fp16 and write them into the float32 output.
+    with torch.autocast(input.device.type, enabled=False):
+        pooled = _RoIAlignFunction.apply(input, chunks, (num_rois, out_h, out_w), compute_dtype)
+    return pooled.to(out_dtype)
 
 
 class RoIAlign(nn.Module):
@@ -265,6 +269,11 @@ class _RoIAlignFunction(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, grad_output: Tensor):
+        with torch.autocast(grad_output.device.type, enabled=False):  # a CPU backward runs in the caller's autocast
+            return _RoIAlignFunction._backward(ctx, grad_output)
+
+    @staticmethod
+    def _backward(ctx, grad_output: Tensor):
         num_images, channels, height, width = ctx.input_shape
         grad = grad_output.permute(0, 2, 3, 1)  # (K, out_h, out_w, C)
         grad_input = grad.new_zeros((num_images * height * width, channels))  # channels-last rows
