@@ -149,6 +149,8 @@ def _gather_pairs(
 ) -> None:
     generator = torch.Generator(device=verts.device).manual_seed(sample.seed)
     surface = sample_points_from_meshes(Meshes.from_shared_topology(verts, faces), cfg.mesh_points, generator)
+    if cfg.dist_vertices:
+        surface = torch.cat([surface, verts], dim=1)
     input_pose = sample.views[0].cam_to_world
     num_pairs = sum(int(view.present.sum()) for view in sample.views)
     for position, view in enumerate(sample.views):
