@@ -4,7 +4,7 @@ import pytest
 import torch
 
 from detection_oracles import roi_align_loop, torchvision_ops
-from usl.model.ops import RoIAlign, convert_boxes_to_rois, roi_align
+from usl.model.ops import RoIAlign, autocast_off, convert_boxes_to_rois, roi_align
 
 TV = torchvision_ops()
 
@@ -107,3 +107,13 @@ def test_autocast_pools_in_float32():
     assert pooled.dtype == torch.bfloat16
     torch.testing.assert_close(pooled, expected.to(torch.bfloat16), rtol=0, atol=0)
     torch.testing.assert_close(features.grad.float(), reference.grad, rtol=1e-2, atol=1e-2)
+
+
+def test_autocast_off_disables_it_and_passes_devices_without_it():
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        with autocast_off("cpu"):
+            assert not torch.is_autocast_enabled("cpu")
+            assert (torch.ones(2, 2) @ torch.ones(2, 2)).dtype == torch.float32
+        assert torch.is_autocast_enabled("cpu")
+    with autocast_off("meta"):  # torch.autocast("meta", enabled=False) raises
+        assert torch.empty(2, device="meta").is_meta

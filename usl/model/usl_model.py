@@ -10,7 +10,6 @@ boxes of the input view's objects (the frustum of each object is its true 2D box
 """
 from __future__ import annotations
 
-from contextlib import nullcontext
 from dataclasses import dataclass
 from typing import Sequence
 
@@ -27,6 +26,7 @@ from usl.model.detector import ImageList, MaskRCNN, MultiScaleRoIAlign
 from usl.model.heads import LayoutHead, LayoutPrediction, ShapeHead, ShapePrediction
 from usl.model.mesh3d_loss import mesh_supervision_loss
 from usl.model.multiview_loss import REGULARIZERS, multiview_silhouette_loss, shape_regularizers
+from usl.model.ops import autocast_off
 from usl.model.outputs import ObjectPredictions
 from usl.model.pretrained import init_detector, print_report
 
@@ -122,7 +122,7 @@ class USLModel(nn.Module):
         pooled = self.layout_pooler(features, boxes)
         layout = self.layout_head(pooled, flat_labels, flat_boxes, flat_K)
         shape = self.shape_head(features, boxes, flat_labels, pooled)
-        with _autocast_off(shape.verts):
+        with autocast_off(shape.verts.device.type):
             verts_cam = cube_to_frustum(shape.verts.float(), flat_boxes, flat_K, layout.z, layout.rho)
         return ObjectOutputs(layout, shape, verts_cam, counts, flat_boxes, flat_K)
 
@@ -153,7 +153,7 @@ class USLModel(nn.Module):
             [s.frame.labels[s.object_rows] for s in samples],
             [s.frame.K for s in samples],
         )
-        with _autocast_off(outputs.verts_cam):
+        with autocast_off(outputs.verts_cam.device.type):
             if self.loss_cfg.supervision == "3d":
                 l3d, stats = mesh_supervision_loss(
                     outputs.stage_verts_cam(), self.faces, samples, outputs.counts, self.loss_cfg.mesh3d
@@ -245,10 +245,3 @@ def _gradient_norms(at: Tensor, terms: dict[str, Tensor]) -> dict[str, Tensor]:
         (grad,) = torch.autograd.grad(term, at, retain_graph=True, allow_unused=True)
         norms[f"grad_{name}"] = torch.zeros((), device=at.device) if grad is None else grad.detach().norm()
     return norms
-
-
-def _autocast_off(like: Tensor):
-    """Disable autocast on ``like``'s device type for the float32 geometry."""
-    if torch.is_autocast_enabled(like.device.type):
-        return torch.autocast(like.device.type, enabled=False)
-    return nullcontext()

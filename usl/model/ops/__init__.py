@@ -1,5 +1,6 @@
 """Detection operators in pure torch: RoIAlign, NMS, box maths and anchors."""
 from .anchors import AnchorGenerator, cell_anchors
+from .autocast import autocast_off
 from .boxes import (
     DEFAULT_SCALE_CLAMP,
     Box2BoxTransform,
@@ -17,6 +18,7 @@ __all__ = [
     "Box2BoxTransform",
     "DEFAULT_SCALE_CLAMP",
     "RoIAlign",
+    "autocast_off",
     "batched_nms",
     "box_area",
     "box_iou",

@@ -27,6 +27,8 @@ import numpy as np
 import torch
 from torch import nn
 
+from .autocast import autocast_off
+
 Tensor = torch.Tensor
 BoxesArg = Union[Tensor, Sequence[Tensor]]
 
@@ -105,7 +107,7 @@ def roi_align(
     ]
     # In compute_dtype under autocast too (as torchvision's autocast rule does): autocast would run
     # the pooling matmuls in bf16/fp16 and write them into the float32 output.
-    with torch.autocast(input.device.type, enabled=False):
+    with autocast_off(input.device.type):
         pooled = _RoIAlignFunction.apply(input, chunks, (num_rois, out_h, out_w), compute_dtype)
     return pooled.to(out_dtype)
 
@@ -269,7 +271,7 @@ class _RoIAlignFunction(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, grad_output: Tensor):
-        with torch.autocast(grad_output.device.type, enabled=False):  # a CPU backward runs in the caller's autocast
+        with autocast_off(grad_output.device.type):  # backward can run under the caller's autocast
             return _RoIAlignFunction._backward(ctx, grad_output)
 
     @staticmethod
