@@ -312,11 +312,6 @@ class OptimConfig:
     # Learning-rate factors by parameter-name prefix, e.g. {shape_head: 10}: the longest matching
     # prefix wins, other parameters keep lr. Empty: one rate for the whole model (the paper).
     lr_mult: dict[str, float] = field(default_factory=dict)
-    # Adam's epsilon by parameter-name prefix, matched as lr_mult is; other parameters keep torch's
-    # 1e-8. Adam divides each step by the gradient's running RMS, so a weight whose gradient is
-    # tiny noise moves as far per step as one the loss pulls hard; an epsilon above that noise's RMS
-    # turns such weights' steps back into small, gradient-sized ones.
-    adam_eps: dict[str, float] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         _check_choice("optim.name", self.name, ("sgd", "adam"))
@@ -325,9 +320,6 @@ class OptimConfig:
         bad = {k: v for k, v in self.lr_mult.items() if not v > 0}
         if bad:
             raise ConfigError(f"optim.lr_mult: factors must be > 0, got {bad}")
-        bad = {k: v for k, v in self.adam_eps.items() if not v > 0}
-        if bad:
-            raise ConfigError(f"optim.adam_eps: values must be > 0, got {bad}")
 
 
 @dataclass

@@ -9,38 +9,23 @@ from torch import nn
 
 from usl.config import OptimConfig
 
-DEFAULT_ADAM_EPS = 1e-8  # torch.optim.Adam's
-
-
-def _longest_prefix(name: str, prefixes: Iterable[str]) -> str | None:
-    return max((k for k in prefixes if name == k or name.startswith(k + ".")), key=len, default=None)
-
 
 def build_optimizer(named_params: Iterable[tuple[str, nn.Parameter]], cfg: OptimConfig) -> torch.optim.Optimizer:
-    """One parameter group per (learning-rate factor, Adam epsilon) pair (``cfg.lr_mult``,
-    ``cfg.adam_eps``); the schedule scales them all."""
-    groups: dict[tuple[float, float], list[nn.Parameter]] = {}
-    matched: dict[str, set] = {"lr_mult": set(), "adam_eps": set()}
+    """One parameter group per learning-rate factor (``cfg.lr_mult``); the schedule scales them all."""
+    groups: dict[float, list[nn.Parameter]] = {}
+    matched = set()
     for name, param in named_params:
         if not param.requires_grad:
             continue
-        lr_prefix = _longest_prefix(name, cfg.lr_mult)
-        eps_prefix = _longest_prefix(name, cfg.adam_eps)
-        matched["lr_mult"].add(lr_prefix)
-        matched["adam_eps"].add(eps_prefix)
-        key = (cfg.lr_mult[lr_prefix] if lr_prefix is not None else 1.0,
-               cfg.adam_eps[eps_prefix] if eps_prefix is not None else DEFAULT_ADAM_EPS)
-        groups.setdefault(key, []).append(param)
-    for option, prefixes in (("lr_mult", cfg.lr_mult), ("adam_eps", cfg.adam_eps)):
-        unused = sorted(set(prefixes) - matched[option])
-        if unused:
-            raise ValueError(f"optim.{option}: no trainable parameter is named {unused} or below it")
-    if cfg.adam_eps and cfg.name != "adam":
-        raise ValueError(f"optim.adam_eps is set but optim.name is {cfg.name!r}, not 'adam'")
+        prefix = max((k for k in cfg.lr_mult if name == k or name.startswith(k + ".")), key=len, default=None)
+        matched.add(prefix)
+        groups.setdefault(cfg.lr_mult[prefix] if prefix is not None else 1.0, []).append(param)
+    unused = sorted(set(cfg.lr_mult) - matched)
+    if unused:
+        raise ValueError(f"optim.lr_mult: no trainable parameter is named {unused} or below it")
+    param_groups = [{"params": params, "lr": cfg.lr * factor} for factor, params in groups.items()]
     if cfg.name == "adam":
-        param_groups = [{"params": params, "lr": cfg.lr * factor, "eps": eps} for (factor, eps), params in groups.items()]
         return torch.optim.Adam(param_groups, lr=cfg.lr, weight_decay=cfg.weight_decay)
-    param_groups = [{"params": params, "lr": cfg.lr * factor} for (factor, _), params in groups.items()]
     return torch.optim.SGD(param_groups, lr=cfg.lr, momentum=cfg.momentum, weight_decay=cfg.weight_decay)
 
 
