@@ -4,7 +4,8 @@
 #   other scenes) -> validate + contact sheet -> train the `tiny` recipe -> evaluate USL against
 #   the paper's baselines on the held-out build -> report (Markdown table, JSON, pictures).
 # Re-running resumes every stage (the builds keep finished shards, training continues from its
-# last checkpoint). Output folder: $USL_MAIN_OUT (default runs/main).
+# last checkpoint). Output folder: $USL_MAIN_OUT (default runs/main). Recipe: $USL_MAIN_CONFIG
+# (default tiny; tiny_long trains 8,000 iterations, half an hour or more of a 2-core CPU).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup.sh
@@ -14,6 +15,7 @@ OUT=${USL_MAIN_OUT:-runs/main}
 DATA=$OUT/scene_shapes
 HELDOUT=$OUT/scene_shapes_heldout
 RUN=$OUT/train
+CONFIG=${USL_MAIN_CONFIG:-tiny}
 EVAL=$OUT/eval
 mkdir -p "$OUT"
 start=$(date +%s)
@@ -28,15 +30,15 @@ usl-records validate "$DATA"
 usl-records validate "$HELDOUT"
 usl-records info "$DATA" --sheet "$OUT/contact_sheet.png"
 
-echo "== 3/4 train the tiny recipe on CPU"
+echo "== 3/4 train the $CONFIG recipe on CPU"
 # One process per core (DDP over gloo) on 2+ cores, each with half of tiny's 4-image batch: the
 # same batches as one process, ~1.4x the iterations per second. USL_MAIN_PROCS=1 forces one.
 source scripts/train_procs.sh
 PROCS=${USL_MAIN_PROCS:-$(( $(cores) >= 2 ? 2 : 1 ))}
 if compgen -G "$RUN/checkpoints/model_*.pt" >/dev/null; then
-  train_with_procs "$PROCS" --config tiny --out "$RUN" --resume
+  train_with_procs "$PROCS" --config "$CONFIG" --out "$RUN" --resume
 else
-  train_with_procs "$PROCS" --config tiny --out "$RUN" data.root="$DATA"
+  train_with_procs "$PROCS" --config "$CONFIG" --out "$RUN" data.root="$DATA"
 fi
 
 echo "== 4/4 evaluate on the held-out build against the baselines"

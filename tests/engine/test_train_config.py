@@ -1,4 +1,5 @@
 """Recipes, YAML loading, key=value overrides (usl.config) and usl-train's config command line."""
+import dataclasses
 from pathlib import Path
 
 import pytest
@@ -195,3 +196,21 @@ def test_paper_recipes_keep_the_papers_loss_and_init_while_tiny_documents_its_ch
     assert tiny.model.shape.global_stage > 0 and tiny.optim.lr_mult == {"shape_head.global_mlp": 0.1}
     assert tiny.loss.weights.normal == 0.1 and tiny.loss.weights.laplacian == 0.0
     assert tiny.loss.dist_schedule(0) == 1.0 and tiny.loss.dist_schedule(tiny.optim.max_iter) < 1.0
+
+
+def test_tiny_long_is_tiny_with_its_schedule_scaled_to_the_longer_run():
+    """The two recipes must not drift apart: only the run length and what is placed by it differ."""
+    tiny, long = load_config("tiny"), load_config("tiny_long")
+    scale = long.optim.max_iter / tiny.optim.max_iter
+    assert scale > 1
+    assert long.optim.steps == tuple(round(s * scale, -1) for s in tiny.optim.steps)
+    for short_at, long_at in zip(tiny.loss.dist_schedule.iters, long.loss.dist_schedule.iters, strict=True):
+        assert abs(long_at / long.optim.max_iter - short_at / tiny.optim.max_iter) < 0.005
+    assert long.loss.dist_schedule.values == tiny.loss.dist_schedule.values
+    rebuilt = dataclasses.replace(
+        long, name=tiny.name,
+        optim=dataclasses.replace(long.optim, steps=tiny.optim.steps, max_iter=tiny.optim.max_iter),
+        loss=dataclasses.replace(long.loss, dist_schedule=tiny.loss.dist_schedule),
+        train=dataclasses.replace(long.train, checkpoint_every=tiny.train.checkpoint_every),
+    )
+    assert rebuilt == tiny
