@@ -1,21 +1,22 @@
 #!/usr/bin/env bash
 # README command (1): the main job, end to end on the built-in Scene-Shapes default, on CPU.
 #   build a small Scene-Shapes set, and a held-out one with another seed (other shape models,
-#   other scenes) -> validate + contact sheet -> train the `tiny` recipe -> evaluate USL against
+#   other scenes) -> validate + contact sheet -> train a recipe (`tiny`) -> evaluate USL against
 #   the paper's baselines on the held-out build -> report (Markdown table, JSON, pictures).
 # Re-running resumes every stage (the builds keep finished shards, training continues from its
-# last checkpoint). Output folder: $USL_MAIN_OUT (default runs/main). Recipe: $USL_MAIN_CONFIG
-# (default tiny; tiny_long trains 8,000 iterations, half an hour or more of a 2-core CPU).
+# last checkpoint). Recipe: $USL_MAIN_CONFIG (default tiny; tiny_long trains 8,000 iterations,
+# half an hour or more of a 2-core CPU). Output folder: $USL_MAIN_OUT (default runs/main for
+# tiny, runs/main_RECIPE for another, so that no run resumes under another recipe's name).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup.sh
 export PYOPENGL_PLATFORM=${PYOPENGL_PLATFORM:-egl}
 
-OUT=${USL_MAIN_OUT:-runs/main}
+CONFIG=${USL_MAIN_CONFIG:-tiny}
+OUT=${USL_MAIN_OUT:-runs/main$([[ $CONFIG == tiny ]] || echo "_$CONFIG")}
 DATA=$OUT/scene_shapes
 HELDOUT=$OUT/scene_shapes_heldout
 RUN=$OUT/train
-CONFIG=${USL_MAIN_CONFIG:-tiny}
 EVAL=$OUT/eval
 mkdir -p "$OUT"
 start=$(date +%s)
@@ -31,11 +32,20 @@ usl-records validate "$HELDOUT"
 usl-records info "$DATA" --sheet "$OUT/contact_sheet.png"
 
 echo "== 3/4 train the $CONFIG recipe on CPU"
-# One process per core (DDP over gloo) on 2+ cores, each with half of tiny's 4-image batch: the
+# One process per core (DDP over gloo) on 2+ cores, each with half of the recipe's batch: the
 # same batches as one process, ~1.4x the iterations per second. USL_MAIN_PROCS=1 forces one.
 source scripts/train_procs.sh
 PROCS=${USL_MAIN_PROCS:-$(( $(cores) >= 2 ? 2 : 1 ))}
+# the recipe's batch is global: train_with_procs splits it over the processes
+USL_TRAIN_BATCH=$(python3 -c "import sys; from usl.config import load_config; print(load_config(sys.argv[1]).train.batch_size)" "$CONFIG")
+export USL_TRAIN_BATCH
 if compgen -G "$RUN/checkpoints/model_*.pt" >/dev/null; then
+  # --resume continues the run's own saved recipe, whatever --config says
+  resumed=$(sed -n 's/^name: *//p' "$RUN/config.yaml")
+  if [[ $resumed != "$CONFIG" ]]; then
+    echo "main_job: $RUN/config.yaml: the run there trained recipe '$resumed', not '$CONFIG'; set USL_MAIN_OUT to another folder" >&2
+    exit 2
+  fi
   train_with_procs "$PROCS" --config "$CONFIG" --out "$RUN" --resume
 else
   train_with_procs "$PROCS" --config "$CONFIG" --out "$RUN" data.root="$DATA"

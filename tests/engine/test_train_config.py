@@ -204,9 +204,9 @@ def test_tiny_long_is_tiny_with_its_schedule_scaled_to_the_longer_run():
     scale = long.optim.max_iter / tiny.optim.max_iter
     assert scale > 1
     assert long.optim.steps == tuple(round(s * scale, -1) for s in tiny.optim.steps)
-    for short_at, long_at in zip(tiny.loss.dist_schedule.iters, long.loss.dist_schedule.iters, strict=True):
-        assert abs(long_at / long.optim.max_iter - short_at / tiny.optim.max_iter) < 0.005
+    assert long.loss.dist_schedule.iters == tuple(round(i * scale, -1) for i in tiny.loss.dist_schedule.iters)
     assert long.loss.dist_schedule.values == tiny.loss.dist_schedule.values
+    # checkpoint_every is bookkeeping, not learning: a longer run saves less often
     rebuilt = dataclasses.replace(
         long, name=tiny.name,
         optim=dataclasses.replace(long.optim, steps=tiny.optim.steps, max_iter=tiny.optim.max_iter),
