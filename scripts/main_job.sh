@@ -37,7 +37,7 @@ echo "== 3/4 train the $CONFIG recipe on CPU"
 source scripts/train_procs.sh
 PROCS=${USL_MAIN_PROCS:-$(( $(cores) >= 2 ? 2 : 1 ))}
 # the recipe's batch is global: train_with_procs splits it over the processes
-USL_TRAIN_BATCH=$(python3 -c "import sys; from usl.config import load_config; print(load_config(sys.argv[1]).train.batch_size)" "$CONFIG")
+USL_TRAIN_BATCH=$(recipe_batch "$CONFIG")
 export USL_TRAIN_BATCH
 if compgen -G "$RUN/checkpoints/model_*.pt" >/dev/null; then
   # --resume continues the run's own saved recipe, whatever --config says

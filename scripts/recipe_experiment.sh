@@ -30,7 +30,8 @@ experiment_builds "$DATA" "${USL_EXP_TRAIN_SCENES:-60}" 60 --quiet
 rm -rf "$RUN" && mkdir -p "$RUN"
 CONFIG=${USL_EXP_CONFIG:-tiny}
 # the batch of the recipe with the overrides (train.batch_size=... included), split over the processes by train_with_procs
-USL_TRAIN_BATCH=$(python3 -c "import sys; from usl.config import load_config; print(load_config(sys.argv[1], sys.argv[2:]).train.batch_size)" "$CONFIG" "$@")
+source scripts/train_procs.sh
+USL_TRAIN_BATCH=$(recipe_batch "$CONFIG" "$@")
 export USL_TRAIN_BATCH
 # CPU time is the figure to compare on a shared machine; the progress bar goes to train.log
 /usr/bin/time -o "$RUN/train_time.txt" -f "training: %e s wall, %U s user CPU" \
