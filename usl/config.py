@@ -326,7 +326,7 @@ class OptimConfig:
 class TrainConfig:
     batch_size: int = 2  # input images per process (GPU)
     seed: int = 0  # seeds data order, sampling and initialisation
-    device: str = "auto"  # "auto" | "cpu" | "cuda"
+    device: str = "auto"  # "auto" (a GPU per process if there are enough, else the CPU) | "cpu" | "cuda"
     amp: str = "bfloat16"  # autocast dtype on CUDA: "bfloat16" | "float16" | "none"; ignored on CPU
     log_every: int = 20  # iterations between rows of metrics.csv and lines of log.txt
     checkpoint_every: int = 1000  # iterations between checkpoints (and one at the end)

@@ -31,11 +31,23 @@ class DistInfo:
         return self.world_size > 1
 
 
-def choose_device(preference: str, local_rank: int) -> torch.device:
-    if preference == "cuda" and not torch.cuda.is_available():
+def choose_device(preference: str, local_rank: int, local_world_size: int = 1) -> torch.device:
+    """This process's device: one GPU per process on its machine, or the CPU.
+
+    NCCL cannot run two processes on one GPU, so ``auto`` takes CUDA only when every process on
+    this machine gets a GPU of its own; otherwise (e.g. the main job's two processes on a laptop
+    with one GPU) it trains on the CPU with gloo. An explicit ``cuda`` that cannot be honoured fails.
+    """
+    gpus = torch.cuda.device_count() if torch.cuda.is_available() else 0
+    if preference == "cuda" and gpus == 0:
         raise RuntimeError("train.device=cuda but CUDA is not available")
-    if preference in ("auto", "cuda") and torch.cuda.is_available():
-        return torch.device("cuda", local_rank % torch.cuda.device_count())
+    if preference == "cuda" and local_world_size > gpus:
+        raise RuntimeError(
+            f"train.device=cuda: {local_world_size} processes on this machine but {gpus} CUDA device(s); "
+            "NCCL needs a GPU per process (launch one process per GPU, or set train.device=cpu)"
+        )
+    if preference in ("auto", "cuda") and 0 < local_world_size <= gpus:
+        return torch.device("cuda", local_rank)
     return torch.device("cpu")
 
 
@@ -43,7 +55,8 @@ def init_distributed(device_preference: str = "auto") -> DistInfo:
     world_size = int(os.environ.get("WORLD_SIZE", "1"))
     rank = int(os.environ.get("RANK", "0"))
     local_rank = int(os.environ.get("LOCAL_RANK", "0"))
-    device = choose_device(device_preference, local_rank)
+    local_world_size = int(os.environ.get("LOCAL_WORLD_SIZE", "1"))
+    device = choose_device(device_preference, local_rank, local_world_size)
     if device.type == "cuda":
         torch.cuda.set_device(device)
     if world_size > 1 and not dist.is_initialized():
