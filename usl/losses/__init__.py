@@ -1,7 +1,13 @@
 """The paper's training losses: 2D silhouette losses (Sec. 3.4), shape regularizers, weighting,
 and Mesh R-CNN's 3D mesh losses for the 3D-supervised baseline."""
 from usl.losses.mesh3d import ChamferNormal, chamfer_normal_loss
-from usl.losses.regularizers import laplacian_smoothing_loss, mesh_edge_loss, normal_consistency, offset_l2_loss
+from usl.losses.regularizers import (
+    depth_laplacian_loss,
+    laplacian_smoothing_loss,
+    mesh_edge_loss,
+    normal_consistency,
+    offset_l2_loss,
+)
 from usl.losses.silhouette import (
     SilhouetteBCE,
     l2d_loss,
@@ -20,6 +26,7 @@ __all__ = [
     "SilhouetteBCE",
     "chamfer_normal_loss",
     "combine_losses",
+    "depth_laplacian_loss",
     "l2d_loss",
     "laplacian_smoothing_loss",
     "normal_consistency",

@@ -32,6 +32,8 @@ class LossWeights:
     edge: float = 0.0  # L_edge (Mesh R-CNN's edge length)
     offset_l2: float = 0.05  # ½‖dV‖² on pre-tanh offsets
     laplacian: float = 0.0  # uniform Laplacian smoothing
+    # the uniform Laplacian along the input view's rays only (the cube's w axis; README)
+    depth_laplacian: float = 0.0
     normal: float = 0.0  # normal consistency (1 - cos between neighbouring faces' normals)
     # l_dist inside L_3D (times loss.dist_scale and loss.dist_schedule). 0 is Table 1's "w/o
     # l_dist": l_dist is not computed at all, so it adds exactly no gradient
@@ -61,13 +63,14 @@ def combine_losses(
     offset_l2: Tensor | None = None,
     laplacian: Tensor | None = None,
     normal: Tensor | None = None,
+    depth_laplacian: Tensor | None = None,
 ) -> tuple[Tensor, dict[str, Tensor]]:
     """Weighted sum of the objective's terms.
 
     A term may be None only if its weight is zero (the caller then need not compute it);
     a non-zero weight without its term is an error, so a recipe cannot silently lose a term.
     Returns the total and a dict of the weighted parts (for logging), keyed
-    ``"det/<name>"``, ``"l3d"``, ``"edge"``, ``"offset_l2"``, ``"laplacian"``, ``"normal"``.
+    ``"det/<name>"``, ``"l3d"``, ``"edge"``, ``"offset_l2"``, ``"laplacian"``, ``"normal"``, ``"depth_laplacian"``.
     """
     parts: dict[str, Tensor] = {}
     if weights.mu_2d:
@@ -76,7 +79,10 @@ def combine_losses(
         for name, value in detection.items():
             parts[f"det/{name}"] = weights.mu_2d * value
     parts["l3d"] = weights.mu_3d * l3d
-    for name, term in (("edge", edge), ("offset_l2", offset_l2), ("laplacian", laplacian), ("normal", normal)):
+    regularizers = {
+        "edge": edge, "offset_l2": offset_l2, "laplacian": laplacian, "normal": normal, "depth_laplacian": depth_laplacian,
+    }
+    for name, term in regularizers.items():
         weight = weights.mu_reg * getattr(weights, name)
         if not weight:
             continue
