@@ -37,7 +37,7 @@ from usl.engine.evaluate import dataset_spec, run_evaluation
 from usl.engine.report import write_report
 from usl.geometry import cube_to_frustum, ico_sphere
 from usl.losses import combine_losses
-from usl.model.multiview_loss import multiview_silhouette_loss, shape_regularizers
+from usl.model.multiview_loss import REGULARIZERS, multiview_silhouette_loss, shape_regularizers
 from usl.model.outputs import ObjectPredictions
 from usl.records import RecordsDataset
 
@@ -63,7 +63,7 @@ def fit_sample(sample, cfg, steps: int, lr: float, ico_level: int) -> FittedMesh
     K = sample.frame.K.float().expand(n, 3, 3)
     optimizer = torch.optim.Adam([verts, layout], lr=lr)
     weights = replace(cfg.loss.weights, mu_2d=0.0)  # no detector here
-    need = {name: bool(getattr(weights, name) * weights.mu_reg) for name in ("edge", "laplacian", "normal")}  # no offsets here
+    need = {name: bool(getattr(weights, name) * weights.mu_reg) for name in REGULARIZERS if name != "offset_l2"}  # no offsets here
 
     def placed() -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         unit = torch.sigmoid(layout)

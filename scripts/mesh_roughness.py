@@ -54,7 +54,7 @@ def main() -> None:
             values.append(roughness(verts.float(), head.faces, pairs, laplacian))
     sphere = roughness(head.sphere_verts[None], head.faces, pairs, laplacian)[0]
     header = f"| {args.data} ({args.split}, {args.input_views}), true boxes, in the cube"
-    print(f"{header} | normal consistency ↓ | mean ‖Lv‖ | mean |Lv·w| (along the input rays) | objects |")
+    print(f"{header} | normal consistency ↓ | mean ‖Lv‖ | mean \\|Lv·w\\| (along the input rays) | objects |")
     print("|:---|:---:|:---:|:---:|:---:|")
     print(f"| ico-sphere (level {cfg.model.shape.ico_level}) | {sphere[0]:.3f} | {sphere[1]:.3f} | {sphere[2]:.3f} | – |")
     for name, values in zip(names, per_stage):

@@ -1,18 +1,21 @@
 """torch.distributed plumbing: one process per GPU (or CPU process) launched by torchrun.
 
-``init_distributed`` reads torchrun's environment (RANK, WORLD_SIZE, LOCAL_RANK, MASTER_ADDR,
-MASTER_PORT), so the same command works on one machine or several
+``init_distributed`` reads torchrun's environment (RANK, WORLD_SIZE, LOCAL_RANK, LOCAL_WORLD_SIZE,
+MASTER_ADDR, MASTER_PORT), so the same command works on one machine or several
 (``torchrun --nnodes N --nproc_per_node G --rdzv_endpoint HOST:PORT -m usl.engine.train ...``).
 NCCL on CUDA, gloo on CPU. Without torchrun it is a plain single process.
 """
 from __future__ import annotations
 
 import os
+import sys
 from dataclasses import dataclass
 from typing import Any
 
 import torch
 import torch.distributed as dist
+
+from usl.records.errors import UslError
 
 
 @dataclass(frozen=True)
@@ -31,23 +34,27 @@ class DistInfo:
         return self.world_size > 1
 
 
-def choose_device(preference: str, local_rank: int, local_world_size: int = 1) -> torch.device:
+def choose_device(preference: str, local_rank: int, local_world_size: int | None = None) -> torch.device:
     """This process's device: one GPU per process on its machine, or the CPU.
 
-    NCCL cannot run two processes on one GPU, so ``auto`` takes CUDA only when every process on
-    this machine gets a GPU of its own; otherwise (e.g. the main job's two processes on a laptop
-    with one GPU) it trains on the CPU with gloo. An explicit ``cuda`` that cannot be honoured fails.
+    NCCL cannot run two processes on one GPU. torchrun starts every process of a machine with the
+    same visible GPUs and says how many there are (``local_world_size``), so ``auto`` takes CUDA only
+    when each gets a GPU of its own; otherwise (e.g. the main job's two processes on a laptop with
+    one GPU) it trains on the CPU with gloo. An explicit ``cuda`` that cannot be honoured fails.
+    Without ``local_world_size`` (a launcher that binds each process to its GPUs itself), process
+    ``local_rank`` takes visible GPU ``local_rank`` modulo their number.
     """
     gpus = torch.cuda.device_count() if torch.cuda.is_available() else 0
     if preference == "cuda" and gpus == 0:
-        raise RuntimeError("train.device=cuda but CUDA is not available")
-    if preference == "cuda" and local_world_size > gpus:
-        raise RuntimeError(
+        raise UslError("train.device=cuda but CUDA is not available")
+    shared = local_world_size is not None and local_world_size > gpus
+    if preference == "cuda" and shared:
+        raise UslError(
             f"train.device=cuda: {local_world_size} processes on this machine but {gpus} CUDA device(s); "
             "NCCL needs a GPU per process (launch one process per GPU, or set train.device=cpu)"
         )
-    if preference in ("auto", "cuda") and 0 < local_world_size <= gpus:
-        return torch.device("cuda", local_rank)
+    if preference in ("auto", "cuda") and gpus and not shared:
+        return torch.device("cuda", local_rank % gpus)
     return torch.device("cpu")
 
 
@@ -55,8 +62,14 @@ def init_distributed(device_preference: str = "auto") -> DistInfo:
     world_size = int(os.environ.get("WORLD_SIZE", "1"))
     rank = int(os.environ.get("RANK", "0"))
     local_rank = int(os.environ.get("LOCAL_RANK", "0"))
-    local_world_size = int(os.environ.get("LOCAL_WORLD_SIZE", "1"))
+    local_world_size = int(os.environ["LOCAL_WORLD_SIZE"]) if "LOCAL_WORLD_SIZE" in os.environ else None
     device = choose_device(device_preference, local_rank, local_world_size)
+    if device.type == "cpu" and device_preference == "auto" and torch.cuda.is_available() and rank == 0:
+        print(
+            f"usl-train: train.device=auto: {local_world_size} processes on this machine share "
+            f"{torch.cuda.device_count()} GPU(s), and NCCL needs one each: training on the CPU",
+            file=sys.stderr,
+        )
     if device.type == "cuda":
         torch.cuda.set_device(device)
     if world_size > 1 and not dist.is_initialized():

@@ -2,8 +2,9 @@
 
 Here L_2D is Mask R-CNN's detection losses (RPN and box head), L_3D the mean of the
 per-pair ``l2d_loss`` over objects and views, and
-``L_reg = edge * L_edge + offset_l2 * ½‖dV‖² + laplacian * L_laplac + normal * L_normal`` (normal
-consistency, not in the paper: an option). Inside L_3D,
+``L_reg = edge * L_edge + offset_l2 * ½‖dV‖² + laplacian * L_laplac + normal * L_normal
++ depth_laplacian * L_laplac,w`` (normal consistency and the Laplacian along the input rays, not
+in the paper: options). Inside L_3D,
 ``dist`` weighs l_dist (``l_2D = dist * l_dist + 1[IoU > t] l_xent``): 0 is Table 1's "w/o l_dist".
 
 The paper's recipes (``LossWeights.recipe(name)``):

@@ -128,7 +128,7 @@ class USLModel(nn.Module):
 
     # ------------------------------------------------------------------ training
     def forward(self, samples: list[MultiViewSample], iteration: int = 0, diagnostics: bool = False) -> dict[str, Tensor]:
-        """Weighted losses (``det/*``, ``l3d``, ``edge``, ``offset_l2``, ``laplacian``, ``normal``), their sum
+        """Weighted losses (``det/*``, ``l3d`` and the weighted regularizers of ``REGULARIZERS``), their sum
         ``loss``, and detached statistics under ``stat/*``.
 
         ``iteration`` drives the loss schedules (``loss.dist_schedule``). ``diagnostics`` adds the
