@@ -58,8 +58,9 @@ def main() -> None:
     print("|:---|:---:|:---:|:---:|:---:|")
     print(f"| ico-sphere (level {cfg.model.shape.ico_level}) | {sphere[0]:.3f} | {sphere[1]:.3f} | {sphere[2]:.3f} | – |")
     for name, values in zip(names, per_stage):
-        table = torch.cat(values).mean(dim=0)
-        print(f"| after {name} | {table[0]:.3f} | {table[1]:.3f} | {table[2]:.3f} | {len(torch.cat(values))} |")
+        table = torch.cat(values)
+        means = table.mean(dim=0)
+        print(f"| after {name} | {means[0]:.3f} | {means[1]:.3f} | {means[2]:.3f} | {len(table)} |")
 
 
 if __name__ == "__main__":
