@@ -1,7 +1,8 @@
-"""Machine-readable data contracts (DESIGN.md §3-4): the record schema and one spec per dataset.
+"""Machine-readable data contracts (docs/design.md §3-4): the record schema and one spec per dataset.
 
 The YAML files beside this module are the single source of truth; code loads them from here.
 """
+
 from __future__ import annotations
 
 from functools import lru_cache

@@ -11,6 +11,7 @@ release's dtypes and gzip level 9; scenes beyond the first hard-link its image f
 
     python scripts/bench_hypersim.py [--frames 6] [--workdir DIR]
 """
+
 from __future__ import annotations
 
 import argparse
@@ -112,9 +113,11 @@ def peak_rss_mib(scenes: Path, split_csv: Path, camera_csv: Path, count: int, ou
     """Peak RSS of a fresh process running the CLI on the first ``count`` scenes (--workers 1)."""
     folders = [str(scenes / f"ai_001_{k:03d}") for k in range(1, count + 1)]
     argv = folders + ["--split-csv", str(split_csv), "--camera-csv", str(camera_csv), "--out", str(out), "--quiet"]
-    code = ("import resource, sys\nfrom pipelines.hypersim.cli import main\n"
-            f"assert main({argv!r}) == 0\n"
-            "print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)")
+    code = (
+        "import resource, sys\nfrom pipelines.hypersim.cli import main\n"
+        f"assert main({argv!r}) == 0\n"
+        "print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)"
+    )
     result = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, check=True)
     return int(result.stdout.strip().splitlines()[-1]) / 1024
 
@@ -132,8 +135,12 @@ def main() -> None:
         scenes, split_csv, camera_csv = make_inputs(root, args.frames)
         print(f"wrote {args.frames} frames of {WIDTH}x{HEIGHT} in {time.perf_counter() - start:.1f} s")
         print(f"\nframes per CPU-second, one thread ({args.frames} frames, JPEG q95, best of 2):")
-        for label, resolution, depth in (("full 1024x768", None, True), ("half 512x384", (512, 384), True),
-                                         ("full, no depth", None, False), ("half, no depth", (512, 384), False)):
+        for label, resolution, depth in (
+            ("full 1024x768", None, True),
+            ("half 512x384", (512, 384), True),
+            ("full, no depth", None, False),
+            ("half, no depth", (512, 384), False),
+        ):
             options = ConvertOptions(resolution=resolution, store_depth=depth)
             unit = unit_for(scenes, camera_csv, args.frames, options)
             print(f"  {label:16s} {frames_per_second(unit):6.2f} frames/s/core")

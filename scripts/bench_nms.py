@@ -11,6 +11,7 @@ of usl's ``nms``/``batched_nms`` (what the detector calls: the compiled loop on 
 pure-torch path (what runs on CUDA without torchvision), of torchvision's, the ratio torchvision /
 usl, and whether the kept indices agree. Without torchvision its columns stay empty.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -71,8 +72,10 @@ def main() -> None:
     torch.set_num_threads(args.threads)
     device = torch.device(args.device)
     tv = _TORCHVISION  # torchvision.ops if it imports and its kernels run beside this torch
-    print(f"torch {torch.__version__}, torchvision {'ops loaded' if tv else 'not available'}, device {device}, "
-          f"{args.threads} thread(s); {'wall' if device.type == 'cuda' else 'process CPU'} ms, median of {args.repeats}")
+    print(
+        f"torch {torch.__version__}, torchvision {'ops loaded' if tv else 'not available'}, device {device}, "
+        f"{args.threads} thread(s); {'wall' if device.type == 'cuda' else 'process CPU'} ms, median of {args.repeats}"
+    )
     print(f"{'case':>26} {'usl nms':>10} {'pure torch':>11} {'torchvision':>12} {'tv / usl':>9} {'same':>5}")
     for count in args.sizes:
         boxes, scores, groups = (t.to(device) for t in detector_like_boxes(count, torch.Generator().manual_seed(count)))

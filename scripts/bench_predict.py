@@ -11,6 +11,7 @@ shape and layout for the true boxes (how the paper evaluates), ``detections`` ru
 head first. The paper reports 8 fps (Scene-Shapes) and 3 fps (Hypersim) on a V100; a ratio
 against it is printed only for CUDA runs (a CPU is not a V100).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -59,7 +60,15 @@ def bench(config: str, args: argparse.Namespace, device: torch.device) -> list[d
             if device.type == "cuda"
             else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
         )
-        rows.append({"config": config, "mode": mode, "size": f"{height}x{width}", "fps": 1.0 / statistics.median(times), "peak": peak})
+        rows.append(
+            {
+                "config": config,
+                "mode": mode,
+                "size": f"{height}x{width}",
+                "fps": 1.0 / statistics.median(times),
+                "peak": peak,
+            }
+        )
     return rows
 
 
@@ -86,7 +95,9 @@ def main() -> None:
         paper = PAPER_FPS.get(row["config"])
         ratio = f"{row['fps'] / paper:8.2f}x" if paper and device.type == "cuda" else f"{'-':>9}"
         paper_text = f"{paper:.0f} fps" if paper else "-"
-        print(f"{row['config']:>13} {row['mode']:>11} {row['size']:>9} {row['fps']:9.2f} {row['peak']:13.2f} {paper_text:>13} {ratio}")
+        print(
+            f"{row['config']:>13} {row['mode']:>11} {row['size']:>9} {row['fps']:9.2f} {row['peak']:13.2f} {paper_text:>13} {ratio}"
+        )
 
 
 if __name__ == "__main__":

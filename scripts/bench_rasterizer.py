@@ -11,6 +11,7 @@
 Usage: python scripts/bench_rasterizer.py [--device cuda] [--repeats 5] [--threads N]
 (--threads 1 gives steadier CPU numbers on a shared machine.)
 """
+
 from __future__ import annotations
 
 import argparse
@@ -90,11 +91,15 @@ def single_window(device: torch.device, repeats: int) -> None:
     sparse_t = timed(lambda: run(rasterize_soft), device, repeats)
     dense_t = timed(lambda: run(rasterize_soft_dense), device, max(1, repeats // 2))
     (sparse, sparse_grad), (dense, dense_grad) = run(rasterize_soft), run(rasterize_soft_dense)
-    print(f"[{device.type}] single 72x72 window, ico-sphere level 3 ({verts.shape[0]} verts, {faces.shape[0]} faces), fwd+bwd:")
+    print(
+        f"[{device.type}] single 72x72 window, ico-sphere level 3 ({verts.shape[0]} verts, {faces.shape[0]} faces), fwd+bwd:"
+    )
     print(f"  sparse {fmt(sparse_t)} | dense {fmt(dense_t)}")
     print(f"  dense/sparse = {dense_t[0] / sparse_t[0]:.1f}x wall, {dense_t[1] / sparse_t[1]:.1f}x cpu")
-    print(f"  max |sparse - dense|: output {(sparse - dense).abs().max().item():.2e}, "
-          f"vertex grad {(sparse_grad - dense_grad).abs().max().item():.2e} (max |grad| {dense_grad.abs().max().item():.2e})")
+    print(
+        f"  max |sparse - dense|: output {(sparse - dense).abs().max().item():.2e}, "
+        f"vertex grad {(sparse_grad - dense_grad).abs().max().item():.2e} (max |grad| {dense_grad.abs().max().item():.2e})"
+    )
 
 
 def hypersim_like_batch(device: torch.device, repeats: int, num_objects: int = 50, num_views: int = 5) -> None:
@@ -126,8 +131,28 @@ def hypersim_like_batch(device: torch.device, repeats: int, num_objects: int = 5
     mesh_view = torch.arange(num_views, device=device).repeat_interleave(num_objects)
     Ks = K.to(device).expand(num_pairs, 3, 3)
 
-    hard_t = timed(lambda: rasterize_hard(true_cam.reshape(-1, 3), packed_faces, face_pair, K.to(device).expand(num_views, 3, 3), HEIGHT, WIDTH, mesh_view=mesh_view), device, max(1, repeats // 2))
-    hard = rasterize_hard(true_cam.reshape(-1, 3), packed_faces, face_pair, K.to(device).expand(num_views, 3, 3), HEIGHT, WIDTH, mesh_view=mesh_view)
+    hard_t = timed(
+        lambda: rasterize_hard(
+            true_cam.reshape(-1, 3),
+            packed_faces,
+            face_pair,
+            K.to(device).expand(num_views, 3, 3),
+            HEIGHT,
+            WIDTH,
+            mesh_view=mesh_view,
+        ),
+        device,
+        max(1, repeats // 2),
+    )
+    hard = rasterize_hard(
+        true_cam.reshape(-1, 3),
+        packed_faces,
+        face_pair,
+        K.to(device).expand(num_views, 3, 3),
+        HEIGHT,
+        WIDTH,
+        mesh_view=mesh_view,
+    )
     true_masks = hard.masks
     visible = int((true_masks.flatten(1).any(1)).sum())
 
@@ -147,12 +172,18 @@ def hypersim_like_batch(device: torch.device, repeats: int, num_objects: int = 5
     dynamic_t = timed(dynamic, device, repeats)
     raster_t = timed(raster_only, device, repeats)
     side = (out.windows[:, 2] - out.windows[:, 0]).median().item()
-    print(f"[{device.type}] Hypersim-like batch: {num_objects} objects x {num_views} views = {num_pairs} windows at {RESOLUTION}x{RESOLUTION} "
-          f"({num_pairs * faces.shape[0]} faces; {visible} pairs visible; median window {side:.0f} px):")
-    print(f"  render_dynamic fwd+bwd (windows, targets, raster) {fmt(dynamic_t)} -> {num_pairs / dynamic_t[0]:7.1f} object-views/s "
-          f"({num_pairs / dynamic_t[1]:.1f} per cpu-second)")
-    print(f"  rasterize_soft fwd+bwd only                       {fmt(raster_t)} -> {num_pairs / raster_t[0]:7.1f} object-views/s "
-          f"({num_pairs / raster_t[1]:.1f} per cpu-second)")
+    print(
+        f"[{device.type}] Hypersim-like batch: {num_objects} objects x {num_views} views = {num_pairs} windows at {RESOLUTION}x{RESOLUTION} "
+        f"({num_pairs * faces.shape[0]} faces; {visible} pairs visible; median window {side:.0f} px):"
+    )
+    print(
+        f"  render_dynamic fwd+bwd (windows, targets, raster) {fmt(dynamic_t)} -> {num_pairs / dynamic_t[0]:7.1f} object-views/s "
+        f"({num_pairs / dynamic_t[1]:.1f} per cpu-second)"
+    )
+    print(
+        f"  rasterize_soft fwd+bwd only                       {fmt(raster_t)} -> {num_pairs / raster_t[0]:7.1f} object-views/s "
+        f"({num_pairs / raster_t[1]:.1f} per cpu-second)"
+    )
     print(f"  rasterize_hard, {num_views} full {HEIGHT}x{WIDTH} views, {num_pairs} meshes  {fmt(hard_t)}")
 
 
@@ -167,8 +198,10 @@ def main() -> None:
     device = torch.device(args.device)
     # Timings of many small ops suffer badly when other processes compete for the cores
     # (each OpenMP region waits for descheduled threads): print the load so runs can be judged.
-    print(f"torch {torch.__version__}, {torch.get_num_threads()} CPU threads, device {device}, "
-          f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
+    print(
+        f"torch {torch.__version__}, {torch.get_num_threads()} CPU threads, device {device}, "
+        f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores"
+    )
     single_window(torch.device("cpu"), args.repeats)
     if device.type != "cpu":
         single_window(device, args.repeats)

@@ -8,6 +8,7 @@ Parquet page checksum verification (always on in usl's readers), and ``data.veri
 
     python scripts/bench_records.py --root data/scene_shapes_small --split train
 """
+
 from __future__ import annotations
 
 import argparse
@@ -89,7 +90,9 @@ def verification_cost(dataset: FiveViewSamples) -> str:
         lines.append(f"page checksums, {what}: {plain:.3f} s -> {checked:.3f} s CPU (x{checked / plain:.3f})")
     megabytes = sum(os.path.getsize(f) for f in files) / 2**20
     seconds = cpu_seconds(lambda: [sha256_file(f) for f in files])
-    lines.append(f"data.verify=sha256: {megabytes:.0f} MB of shards in {seconds:.3f} s CPU ({megabytes / seconds:.0f} MB/s, once per run)")
+    lines.append(
+        f"data.verify=sha256: {megabytes:.0f} MB of shards in {seconds:.3f} s CPU ({megabytes / seconds:.0f} MB/s, once per run)"
+    )
     return "\n".join(lines)
 
 

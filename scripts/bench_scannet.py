@@ -14,6 +14,7 @@ instance ids on a real scan (purity, id switches) at the given ``--stride``.
 
     python scripts/bench_scannet.py [--frames 400] [--work /tmp/bench_scannet]
 """
+
 from __future__ import annotations
 
 import argparse
@@ -22,17 +23,17 @@ import os
 for _var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
     os.environ.setdefault(_var, "1")  # per-core numbers: one thread everywhere
 
-import json
-import shutil
-import subprocess
-import sys
-import time
-from dataclasses import dataclass
-from pathlib import Path
+import json  # noqa: E402
+import shutil  # noqa: E402
+import subprocess  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+from dataclasses import dataclass  # noqa: E402
+from pathlib import Path  # noqa: E402
 
-import cv2
-import numpy as np
-import torch
+import cv2  # noqa: E402
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
@@ -59,8 +60,14 @@ CATEGORIES = tuple((int(c["id"]), c["name"]) for c in SPEC["categories"])
 PERIOD = 200  # the camera goes back and forth: frame i looks like frame PERIOD - i, so few renders serve many frames
 COCO = (62, 63, 72, 67, 44, 64, 84, 62, 73, 65)
 BOXES = tuple(
-    Box(k + 1, COCO[k], 2, (-1.6 + 0.36 * k, 0.3 + 0.5 * (k % 3), 0.3 + 0.1 * (k % 4)), (0.16, 0.2, 0.3),
-        (40 + 20 * k, 200 - 15 * k, 90 + 10 * (k % 5)))
+    Box(
+        k + 1,
+        COCO[k],
+        2,
+        (-1.6 + 0.36 * k, 0.3 + 0.5 * (k % 3), 0.3 + 0.1 * (k % 4)),
+        (0.16, 0.2, 0.3),
+        (40 + 20 * k, 200 - 15 * k, 90 + 10 * (k % 5)),
+    )
     for k in range(10)
 )
 
@@ -94,8 +101,16 @@ def make_scan(work: Path, config: Config, num_frames: int) -> tuple[Path, Detect
     if (cache / f"{scene}.jsonl").exists():
         return scan_dir, DetectionsFileSource(str(cache), MAPPING)
     scan_dir.mkdir(parents=True, exist_ok=True)
-    synthetic = SyntheticScan(num_frames=num_frames, color_size=config.color, depth_size=config.depth, boxes=BOXES,
-                              period=PERIOD, render_scale=4, depth_noise_mm=2.0, x_range=(-1.5, 1.5))
+    synthetic = SyntheticScan(
+        num_frames=num_frames,
+        color_size=config.color,
+        depth_size=config.depth,
+        boxes=BOXES,
+        period=PERIOD,
+        render_scale=4,
+        depth_noise_mm=2.0,
+        x_range=(-1.5, 1.5),
+    )
     rendered: dict[int, tuple[SyntheticFrame, list[dict]]] = {}
     rng = np.random.default_rng(0)
 
@@ -110,10 +125,14 @@ def make_scan(work: Path, config: Config, num_frames: int) -> tuple[Path, Detect
 
     write_sens(scan_dir / f"{scene}.sens", synthetic, (frame(i)[0] for i in range(num_frames)))
     width, height = config.color
-    images = [{"id": i, "file_name": f"{scene}/color/{i}.jpg", "width": width, "height": height}
-              for i in range(num_frames)]
-    results = [{"image_id": i, **{k: v for k, v in d.items() if k != "true_instance"}}
-               for i in range(num_frames) for d in frame(i)[1]]
+    images = [
+        {"id": i, "file_name": f"{scene}/color/{i}.jpg", "width": width, "height": height} for i in range(num_frames)
+    ]
+    results = [
+        {"image_id": i, **{k: v for k, v in d.items() if k != "true_instance"}}
+        for i in range(num_frames)
+        for d in frame(i)[1]
+    ]
     (work / tag / "images.json").write_text(json.dumps(images))
     (work / tag / "results.json").write_text(json.dumps(results))
     split_detections([work / tag / "results.json"], work / tag / "images.json", {scene}, cache)
@@ -144,7 +163,9 @@ def speed(work: Path, config: Config, num_frames: int) -> dict[str, float]:
                 start = time.process_time()
                 rows = list(scene_frames(scan, tracked, grid, opts))
                 out["encode fps (pass 2)"] = len(rows) / (time.process_time() - start)
-                out["record MB/frame"] = sum(len(r["image"]["bytes"]) + len(r["depth"] or b"") for r in rows) / len(rows) / 2**20
+                out["record MB/frame"] = (
+                    sum(len(r["image"]["bytes"]) + len(r["depth"] or b"") for r in rows) / len(rows) / 2**20
+                )
     start = time.process_time()
     record = build_scene(ScanUnit("scene0100_00", str(scan_dir), source, options(config, 1)))
     out["whole scene fps"] = len(record.frames) / (time.process_time() - start)
@@ -193,8 +214,10 @@ def quality(scan_dir: Path, label_map: Path, stride: int) -> None:
         tracked = track_scan(scan, masks, grid, opts)
         seconds = time.process_time() - start
     observations = [(f, t.track_id, d.source_id) for t in tracked.tracks for f, d in zip(t.frames, t.detections)]
-    print(f"{scene_id} stride {stride}: {tracking_quality(observations).describe()}; {len(tracked.objects)} objects "
-          f"of >= {opts.tracker.min_track_frames} frames; {len(tracked.poses)} frames in {seconds:.1f} s")
+    print(
+        f"{scene_id} stride {stride}: {tracking_quality(observations).describe()}; {len(tracked.objects)} objects "
+        f"of >= {opts.tracker.min_track_frames} frames; {len(tracked.poses)} frames in {seconds:.1f} s"
+    )
 
 
 def main() -> None:
@@ -225,8 +248,11 @@ def main() -> None:
         for mode in ("track", "build"):
             rss = {n: peak_rss(args.work, config, n, mode) for n in (200, 800)}
             what = "pass 1 (decode+track)" if mode == "track" else "whole conversion (run_build, 1 worker)"
-            print(f"peak RSS, {config.name}, {what}: 200 frames {rss[200]:.0f} MiB, 800 frames {rss[800]:.0f} MiB "
-                  f"(+{rss[800] - rss[200]:.0f} MiB for 4x the frames)", flush=True)
+            print(
+                f"peak RSS, {config.name}, {what}: 200 frames {rss[200]:.0f} MiB, 800 frames {rss[800]:.0f} MiB "
+                f"(+{rss[800] - rss[200]:.0f} MiB for 4x the frames)",
+                flush=True,
+            )
             results[f"rss {mode}"] = rss
         target = results["640x480"]["decode+track fps"]
         verdict = "met" if target >= 30 else "MISSED"

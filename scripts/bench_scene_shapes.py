@@ -8,6 +8,7 @@ machine that other jobs share.
 
     python scripts/bench_scene_shapes.py [--scenes 8] [--resolution 512] [--workers 1 2]
 """
+
 from __future__ import annotations
 
 import argparse
@@ -32,8 +33,23 @@ def cpu_seconds() -> float:
 
 def run(workers: int, scenes: int, resolution: int, views: tuple[int, int], root: Path) -> dict[str, float]:
     out = root / f"workers-{workers}"
-    argv = ["--out", str(out), "--num-scenes", str(scenes), "--num-models", "60", "--resolution", str(resolution),
-            "--azimuths", str(views[0]), "--heights", str(views[1]), "--workers", str(workers), "--quiet"]
+    argv = [
+        "--out",
+        str(out),
+        "--num-scenes",
+        str(scenes),
+        "--num-models",
+        "60",
+        "--resolution",
+        str(resolution),
+        "--azimuths",
+        str(views[0]),
+        "--heights",
+        str(views[1]),
+        "--workers",
+        str(workers),
+        "--quiet",
+    ]
     cpu0, wall0 = cpu_seconds(), time.perf_counter()
     if build_main(argv) != 0:
         raise SystemExit(f"build with --workers {workers} failed")
@@ -50,15 +66,19 @@ def main() -> None:
     parser.add_argument("--heights", type=int, default=3)
     parser.add_argument("--workers", type=int, nargs="+", default=[1, 2])
     args = parser.parse_args()
-    print(f"Scene-Shapes build, {args.scenes} scenes x {args.azimuths * args.heights} views at "
-          f"{args.resolution}x{args.resolution}, {os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.1f}")
+    print(
+        f"Scene-Shapes build, {args.scenes} scenes x {args.azimuths * args.heights} views at "
+        f"{args.resolution}x{args.resolution}, {os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.1f}"
+    )
     with tempfile.TemporaryDirectory() as tmp:
         results = [run(w, args.scenes, args.resolution, (args.azimuths, args.heights), Path(tmp)) for w in args.workers]
     print(f"{'workers':>7} {'frames':>6} {'wall s':>7} {'frames/s':>8} {'frames/s/core':>13} {'frames/CPU-s':>12}")
     for r in results:
         fps = r["frames"] / r["wall"]
-        print(f"{r['workers']:>7} {r['frames']:>6} {r['wall']:>7.1f} {fps:>8.2f} {fps / r['workers']:>13.2f} "
-              f"{r['frames'] / r['cpu']:>12.2f}")
+        print(
+            f"{r['workers']:>7} {r['frames']:>6} {r['wall']:>7.1f} {fps:>8.2f} {fps / r['workers']:>13.2f} "
+            f"{r['frames'] / r['cpu']:>12.2f}"
+        )
     print("target: >= 2 frames/s/core")
 
 

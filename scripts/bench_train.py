@@ -11,6 +11,7 @@ per sample whose masks sit at other places (the cost of a step does not depend o
 being consistent). The step is the trainer's own ``TrainStep`` (autocast, clipping, NaN guard,
 optimizer); data loading is not timed.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -35,10 +36,20 @@ from usl.engine.train_step import TrainStep  # noqa: E402
 from usl.geometry.cameras import intrinsics_from_fov  # noqa: E402
 from usl.records import RecordsDataset  # noqa: E402
 
-RECIPE_DATA = {"tiny": "scene_shapes", "scene_shapes": "scene_shapes", "scene_shapes_fpn": "scene_shapes",
-               "hypersim": "hypersim", "scannet": "scannet"}
-DEFAULT_SIZE = {"tiny": (128, 128), "scene_shapes": (512, 512), "scene_shapes_fpn": (512, 512),
-                "hypersim": (768, 1024), "scannet": (968, 1296)}
+RECIPE_DATA = {
+    "tiny": "scene_shapes",
+    "scene_shapes": "scene_shapes",
+    "scene_shapes_fpn": "scene_shapes",
+    "hypersim": "hypersim",
+    "scannet": "scannet",
+}
+DEFAULT_SIZE = {
+    "tiny": (128, 128),
+    "scene_shapes": (512, 512),
+    "scene_shapes_fpn": (512, 512),
+    "hypersim": (768, 1024),
+    "scannet": (968, 1296),
+}
 DEFAULT_OBJECTS = {"tiny": 2, "scene_shapes": 2, "scene_shapes_fpn": 2, "hypersim": 20, "scannet": 8}
 
 
@@ -73,9 +84,16 @@ def synthetic_sample(index: int, height: int, width: int, objects: int, views: i
     boxes = random_boxes(objects, height, width, generator)
     masks = ellipse_masks(boxes, height, width)
     frame = FrameData(
-        scene_id=f"synthetic{index}", view_id=0, image=torch.rand(3, height, width, generator=generator), K=K,
-        cam_to_world=orbit_pose(0.0), instance_ids=torch.arange(objects), labels=torch.randint(0, classes, (objects,), generator=generator),
-        boxes=boxes, masks=masks, depth_min=torch.full((objects,), float("nan")),
+        scene_id=f"synthetic{index}",
+        view_id=0,
+        image=torch.rand(3, height, width, generator=generator),
+        K=K,
+        cam_to_world=orbit_pose(0.0),
+        instance_ids=torch.arange(objects),
+        labels=torch.randint(0, classes, (objects,), generator=generator),
+        boxes=boxes,
+        masks=masks,
+        depth_min=torch.full((objects,), float("nan")),
     )
     targets = [TargetView(0, K, frame.cam_to_world, masks, torch.ones(objects, dtype=torch.bool))]
     for j in range(1, views):
@@ -123,8 +141,10 @@ def main() -> None:
     else:
         height, width = args.size or DEFAULT_SIZE.get(args.config, (768, 1024))
         objects = args.objects or DEFAULT_OBJECTS.get(args.config, 10)
-        pool = [synthetic_sample(i, height, width, objects, cfg.data.num_views, len(cfg.model.categories))
-                for i in range(4 * batch_size)]
+        pool = [
+            synthetic_sample(i, height, width, objects, cfg.data.num_views, len(cfg.model.categories))
+            for i in range(4 * batch_size)
+        ]
     batches = [pool[k * batch_size : (k + 1) * batch_size] for k in range(4)]
     times, cpu_times = [], []  # wall clock; CPU time of this process (all its threads)
     for iteration in range(args.warmup + args.iters):
@@ -140,11 +160,15 @@ def main() -> None:
             cpu_times.append(time.process_time() - cpu_start)
     per_iter = statistics.median(times)
     images = batch_size
-    print(f"config={args.config} device={device} batch={images} views={cfg.data.num_views} "
-          f"stages={cfg.model.shape.num_stages} ico={cfg.model.shape.ico_level} render={cfg.loss.render.resolution} "
-          f"amp={cfg.train.amp if device.type == 'cuda' else 'off'} data={'records' if args.data else 'synthetic'}")
+    print(
+        f"config={args.config} device={device} batch={images} views={cfg.data.num_views} "
+        f"stages={cfg.model.shape.num_stages} ico={cfg.model.shape.ico_level} render={cfg.loss.render.resolution} "
+        f"amp={cfg.train.amp if device.type == 'cuda' else 'off'} data={'records' if args.data else 'synthetic'}"
+    )
     print(f"  seconds/iteration (median of {len(times)}): {per_iter:.3f}   min {min(times):.3f}  max {max(times):.3f}")
-    print(f"  CPU seconds/iteration (median, all threads; steady on a shared machine): {statistics.median(cpu_times):.3f}")
+    print(
+        f"  CPU seconds/iteration (median, all threads; steady on a shared machine): {statistics.median(cpu_times):.3f}"
+    )
     print(f"  images/s: {images / per_iter:.2f}   last loss {values['loss']:.4f}")
     if device.type == "cuda":
         print(f"  peak GPU memory: {torch.cuda.max_memory_allocated(device) / 2**30:.2f} GiB")

@@ -1,5 +1,6 @@
 """What the per-object diagnostic scripts share: their command line, the trained model, and the
 input views of a build, resized for that model (``mask_head_iou.py``, ``placement_chamfer.py``)."""
+
 from __future__ import annotations
 
 import argparse

@@ -18,6 +18,7 @@ predicts it:
     python scripts/fit_free_meshes.py HELDOUT --score OUT --input-views every:8 --max-scenes 12 \
         --steps 200 --ico-level 3 data.num_views=8
 """
+
 from __future__ import annotations
 
 import argparse
@@ -63,7 +64,9 @@ def fit_sample(sample, cfg, steps: int, lr: float, ico_level: int) -> FittedMesh
     K = sample.frame.K.float().expand(n, 3, 3)
     optimizer = torch.optim.Adam([verts, layout], lr=lr)
     weights = replace(cfg.loss.weights, mu_2d=0.0)  # no detector here
-    need = {name: bool(getattr(weights, name) * weights.mu_reg) for name in REGULARIZERS if name != "offset_l2"}  # no offsets here
+    need = {
+        name: bool(getattr(weights, name) * weights.mu_reg) for name in REGULARIZERS if name != "offset_l2"
+    }  # no offsets here
 
     def placed() -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         unit = torch.sigmoid(layout)
@@ -96,8 +99,10 @@ class FreeMeshOracle:
 
     def __init__(self, dataset: MultiViewDataset, cfg, steps: int, lr: float, ico_level: int):
         if cfg.data.max_objects or cfg.data.flip_prob:
-            raise SystemExit("FreeMeshOracle: fits need data.max_objects=0 and data.flip_prob=0 (mirrored views would be "
-                             "fitted in a reflected camera frame)")
+            raise SystemExit(
+                "FreeMeshOracle: fits need data.max_objects=0 and data.flip_prob=0 (mirrored views would be "
+                "fitted in a reflected camera frame)"
+            )
         self.dataset, self.cfg, self.steps, self.lr, self.ico_level = dataset, cfg, steps, lr, ico_level
         self.index = {item: i for i, item in enumerate(dataset.items)}
 
@@ -107,18 +112,28 @@ class FreeMeshOracle:
             frame = inp.frame
             position = self.dataset.scene_index(frame.scene_id)[0].index(frame.view_id)
             if (frame.scene_id, position) not in self.index:
-                raise SystemExit(f"{frame.scene_id} view {frame.view_id} is not an input view of the fitted dataset "
-                                 "(data.input_view_stride must be 1)")
+                raise SystemExit(
+                    f"{frame.scene_id} view {frame.view_id} is not an input view of the fitted dataset "
+                    "(data.input_view_stride must be 1)"
+                )
             with torch.inference_mode(False), torch.enable_grad():  # usl-eval calls predictors without gradients
                 sample = self.dataset[self.index[(frame.scene_id, position)]]
                 if not torch.equal(sample.frame.instance_ids[sample.object_rows], frame.instance_ids):
                     raise SystemExit(f"{frame.scene_id} view {frame.view_id}: the fitted sample has other objects")
                 fit = fit_sample(sample, self.cfg, self.steps, self.lr, self.ico_level)
             n = len(fit.verts)
-            out.append(ObjectPredictions(
-                boxes=frame.boxes.float(), labels=frame.labels.clone(), scores=torch.ones(n), z=fit.z, rho=fit.rho,
-                verts=fit.verts.float(), faces=fit.faces, instance_ids=frame.instance_ids.clone(),
-            ))
+            out.append(
+                ObjectPredictions(
+                    boxes=frame.boxes.float(),
+                    labels=frame.labels.clone(),
+                    scores=torch.ones(n),
+                    z=fit.z,
+                    rho=fit.rho,
+                    verts=fit.verts.float(),
+                    faces=fit.faces,
+                    instance_ids=frame.instance_ids.clone(),
+                )
+            )
         return out
 
 
@@ -129,11 +144,28 @@ def score(args, cfg, dataset: MultiViewDataset, level: int) -> None:
     predictors = [oracle] + ([fixed] if fixed else [])
     config = EvalConfig(input_views=args.input_views, batch_size=1)
     out = Path(args.score)
-    run = run_evaluation(args.data, args.split, predictors, config, max_scenes=args.max_scenes,
-                         pictures_dir=out / "pictures", num_pictures=args.pictures)
-    views = {key: getattr(cfg.data, key) for key in ("num_views", "view_sampling", "flip_prob", "max_objects")}  # as fitted
-    header = {**run.header, "free_mesh_fit": {"steps": args.steps, "lr": args.lr, "ico_level": level,
-                                              "overrides": list(args.overrides), "data": views}}
+    run = run_evaluation(
+        args.data,
+        args.split,
+        predictors,
+        config,
+        max_scenes=args.max_scenes,
+        pictures_dir=out / "pictures",
+        num_pictures=args.pictures,
+    )
+    views = {
+        key: getattr(cfg.data, key) for key in ("num_views", "view_sampling", "flip_prob", "max_objects")
+    }  # as fitted
+    header = {
+        **run.header,
+        "free_mesh_fit": {
+            "steps": args.steps,
+            "lr": args.lr,
+            "ico_level": level,
+            "overrides": list(args.overrides),
+            "data": views,
+        },
+    }
     paths = write_report(out, header, run.summaries, run.rows, run.layout, {"pictures": "pictures/index.md"})
     print(f"ico level {level}, {args.steps} steps, overrides: {' '.join(args.overrides) or '(recipe)'}\n")
     print(paths["table"].read_text())

@@ -6,6 +6,7 @@ other views. Mask IoU in the input view, where a sphere filling the true box is 
 fit, is compared and printed but not claimed (README: the main job's model does not beat the
 fixed-depth sphere there yet). The learning targets of issue F are printed as MET / MISSED.
 """
+
 from __future__ import annotations
 
 import json
@@ -34,11 +35,15 @@ def main(metrics_path: str) -> int:
             claimed = metric in CLAIMED
             ok &= wins or not claimed
             verdict = ("PASS" if wins else "FAIL") if claimed else ("beats" if wins else "below") + " (not claimed)"
-            print(f"{verdict}: USL {metric} {ours:.3f} vs {baseline} {rows[baseline][metric]:.3f} ({direction} is better)")
+            print(
+                f"{verdict}: USL {metric} {ours:.3f} vs {baseline} {rows[baseline][metric]:.3f} ({direction} is better)"
+            )
     for metric, direction in METRICS:
         ours, goal = rows["USL"][metric], TARGETS[metric]
         met = ours <= goal if direction == "lower" else ours >= goal
-        print(f"target {'MET' if met else 'MISSED'}: USL {metric} {ours:.3f} ({'<=' if direction == 'lower' else '>='} {goal})")
+        print(
+            f"target {'MET' if met else 'MISSED'}: USL {metric} {ours:.3f} ({'<=' if direction == 'lower' else '>='} {goal})"
+        )
     return 0 if ok else 1
 
 

@@ -23,6 +23,7 @@ and in two orders that use the truth:
 
     python3 scripts/mask_head_iou.py HELDOUT_BUILD RUN_OR_CHECKPOINT [--split train] [--input-views every:8]
 """
+
 from __future__ import annotations
 
 import torch
@@ -42,7 +43,8 @@ def inscribed_ellipses(boxes: Tensor, height: int, width: int) -> Tensor:
     centre = (boxes[:, :2] + boxes[:, 2:]) / 2
     half = ((boxes[:, 2:] - boxes[:, :2]) / 2).clamp(min=1e-6)
     return ((u - centre[:, 0, None, None]) / half[:, 0, None, None]) ** 2 + (
-        (v - centre[:, 1, None, None]) / half[:, 1, None, None]) ** 2 <= 1
+        (v - centre[:, 1, None, None]) / half[:, 1, None, None]
+    ) ** 2 <= 1
 
 
 def owner_wins_masks(depth: Tensor, true_masks: Tensor) -> Tensor:
@@ -72,7 +74,11 @@ def ordered_pairs(alone_masks: Tensor, predicted_depth: Tensor, true_depth: Tens
     objects both have a true nearest depth: right when their predicted nearest depths order them as
     the true ones do."""
     i, j = torch.triu_indices(len(alone_masks), len(alone_masks), offset=1)
-    counted = (alone_masks[i] & alone_masks[j]).flatten(1).any(1) & torch.isfinite(true_depth[i]) & torch.isfinite(true_depth[j])
+    counted = (
+        (alone_masks[i] & alone_masks[j]).flatten(1).any(1)
+        & torch.isfinite(true_depth[i])
+        & torch.isfinite(true_depth[j])
+    )
     agree = (predicted_depth[i] < predicted_depth[j]) == (true_depth[i] < true_depth[j])
     return int((counted & agree).sum()), int(counted.sum())
 
@@ -81,8 +87,15 @@ def draw(verts: Tensor, faces: Tensor, K: Tensor, height: int, width: int, toget
     """The z-buffer of N meshes (N, V, 3) in one view: all together (usl-eval's render) or each alone."""
     meshes, n = Meshes.from_shared_topology(verts, faces), len(verts)
     mesh_view = torch.zeros(n, dtype=torch.long) if together else torch.arange(n)
-    return rasterize_hard(meshes.verts_packed(), meshes.faces_packed(), meshes.faces_packed_to_mesh_idx(),
-                          K.expand(int(mesh_view.max()) + 1, 3, 3), height, width, mesh_view=mesh_view)
+    return rasterize_hard(
+        meshes.verts_packed(),
+        meshes.faces_packed(),
+        meshes.faces_packed_to_mesh_idx(),
+        K.expand(int(mesh_view.max()) + 1, 3, 3),
+        height,
+        width,
+        mesh_view=mesh_view,
+    )
 
 
 @torch.no_grad()
@@ -91,7 +104,9 @@ def frame_ious(model, frame) -> tuple[dict[str, list[float]], tuple[int, int]]:
     _, features = model._backbone([frame])
     heads = model.detector.roi_heads
     logits = heads.mask_head(heads.mask_pooler(features, [frame.boxes]))
-    mask_head = paste_masks_in_image(select_class_masks(logits, frame.labels), frame.boxes, frame.size, heads.cfg.mask_threshold)
+    mask_head = paste_masks_in_image(
+        select_class_masks(logits, frame.labels), frame.boxes, frame.size, heads.cfg.mask_threshold
+    )
     verts = model.objects(features, [frame.boxes], [frame.labels], [frame.K]).verts_cam
     height, width = frame.size
     alone = draw(verts, model.faces, frame.K, height, width, together=False)  # one view per mesh
@@ -102,7 +117,9 @@ def frame_ious(model, frame) -> tuple[dict[str, list[float]], tuple[int, int]]:
         "mask head": mask_iou(mask_head.bool(), true, nan).tolist(),
         "mesh (no occlusion)": mask_iou(alone.masks, true, nan).tolist(),
         "meshes together (usl-eval)": mask_iou(together.masks, true, nan).tolist(),
-        "meshes together, true object order": mask_iou(object_order_masks(alone.depth_map, frame.depth_min), true, nan).tolist(),
+        "meshes together, true object order": mask_iou(
+            object_order_masks(alone.depth_map, frame.depth_min), true, nan
+        ).tolist(),
         "meshes together, true owner wins": mask_iou(owner_wins_masks(alone.depth_map, true), true, nan).tolist(),
         "inscribed ellipse": mask_iou(inscribed_ellipses(frame.boxes, height, width), true, nan).tolist(),
     }, pairs
@@ -124,7 +141,9 @@ def main() -> None:
         kept = torch.tensor(values)
         kept = kept[~kept.isnan()]
         print(f"| {name} | {100 * kept.mean():.1f} | {len(kept)} |")
-    print(f"\nPairs of overlapping meshes whose predicted nearest depths order them as the true ones do: {right} of {total}")
+    print(
+        f"\nPairs of overlapping meshes whose predicted nearest depths order them as the true ones do: {right} of {total}"
+    )
 
 
 if __name__ == "__main__":

@@ -14,6 +14,7 @@ The pictures show the same; this puts numbers on it and says which stage to blam
 
     python3 scripts/mesh_roughness.py HELDOUT_BUILD RUN_OR_CHECKPOINT [--split train] [--input-views every:8]
 """
+
 from __future__ import annotations
 
 import torch
@@ -45,7 +46,9 @@ def main() -> None:
     head = model.shape_head
     pairs = faces_on_each_edge(head.faces)
     laplacian = uniform_laplacian(len(head.sphere_verts), head.edges)
-    names = (["the global stage"] if head.global_mlp is not None else []) + [f"stage {i + 1}" for i in range(len(head.stages))]
+    names = (["the global stage"] if head.global_mlp is not None else []) + [
+        f"stage {i + 1}" for i in range(len(head.stages))
+    ]
     per_stage: list[list[Tensor]] = [[] for _ in names]
     for frame, _ in input_frames(args, cfg.data.max_size):
         _, features = model._backbone([frame])
@@ -56,7 +59,9 @@ def main() -> None:
     header = f"| {args.data} ({args.split}, {args.input_views}), true boxes, in the cube"
     print(f"{header} | normal consistency ↓ | mean ‖Lv‖ | mean \\|Lv·w\\| (along the input rays) | objects |")
     print("|:---|:---:|:---:|:---:|:---:|")
-    print(f"| ico-sphere (level {cfg.model.shape.ico_level}) | {sphere[0]:.3f} | {sphere[1]:.3f} | {sphere[2]:.3f} | – |")
+    print(
+        f"| ico-sphere (level {cfg.model.shape.ico_level}) | {sphere[0]:.3f} | {sphere[1]:.3f} | {sphere[2]:.3f} | – |"
+    )
     for name, values in zip(names, per_stage):
         table = torch.cat(values)
         means = table.mean(dim=0)

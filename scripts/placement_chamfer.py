@@ -9,6 +9,7 @@ holds the Chamfer back.
 
     python3 scripts/placement_chamfer.py HELDOUT_BUILD RUN_OR_CHECKPOINT [--split train] [--input-views every:8]
 """
+
 from __future__ import annotations
 
 import torch
@@ -28,7 +29,11 @@ def aligned_scores(pred: Tensor, true: Tensor) -> dict[str, tuple[Tensor, Tensor
     shift = true.mean(1, keepdim=True) - pred.mean(1, keepdim=True)
     depth_only = shift * torch.tensor([0.0, 0.0, 1.0])
     out = {}
-    for name, moved in (("as predicted", pred), ("centroids aligned", pred + shift), ("depth aligned", pred + depth_only)):
+    for name, moved in (
+        ("as predicted", pred),
+        ("centroids aligned", pred + shift),
+        ("depth aligned", pred + depth_only),
+    ):
         scores = chamfer_f1(moved, true, thresholds=0.1)
         out[name] = (scores["Chamfer-L2"], scores["F1@0.1"])
     return out
@@ -45,8 +50,10 @@ def frame_scores(model, frame, objects, generator: torch.Generator) -> dict[str,
     pred = Meshes.from_shared_topology(verts, model.faces)
     chosen = [true_meshes[int(frame.instance_ids[i])] for i in keep]
     true = Meshes([m.verts for m in chosen], [m.faces for m in chosen])
-    return aligned_scores(sample_points_from_meshes(pred, NUM_EVAL_SAMPLES, generator),
-                          sample_points_from_meshes(true, NUM_EVAL_SAMPLES, generator))
+    return aligned_scores(
+        sample_points_from_meshes(pred, NUM_EVAL_SAMPLES, generator),
+        sample_points_from_meshes(true, NUM_EVAL_SAMPLES, generator),
+    )
 
 
 def main() -> None:

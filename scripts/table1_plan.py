@@ -11,6 +11,7 @@ budget is refused (more seeds are fine). A row whose config key this checkout's 
 ``--iters`` other than the recipe's ``optim.max_iter`` scales the recipe's iteration-valued
 schedule (LR steps, warm-up, l_dist schedule) with it, so a shorter budget keeps the recipe's shape.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -57,7 +58,13 @@ TRAINED = tuple(r for r in ROWS if r.trained)
 # 2026-12-01): usl2 438-488 s CPU for 600 iterations, usl5 880 s, usl5_vertalign 764-775 s,
 # usl5_no_dist 679-724 s, meshrcnn_3d 784-797 s. Runs of the output folder replace them (their
 # train_time.txt).
-MEASURED_SECONDS_PER_ITER = {"usl2": 0.76, "usl5": 1.47, "usl5_vertalign": 1.28, "usl5_no_dist": 1.17, "meshrcnn_3d": 1.32}
+MEASURED_SECONDS_PER_ITER = {
+    "usl2": 0.76,
+    "usl5": 1.47,
+    "usl5_vertalign": 1.28,
+    "usl5_no_dist": 1.17,
+    "meshrcnn_3d": 1.32,
+}
 # usl-eval --rows model (10k points per mesh, 2 pictures): start-up, and per input view; from
 # 9.0 s CPU for 8 input views and 32.7 s for 64 (the quick held-out build, every:8 and all).
 # The periodic validation during training (val.period) is not counted.
@@ -103,8 +110,11 @@ def _unknown_key(config: str, override: str) -> bool:
 def measured_seconds_per_iter(out: Path, row: Row, iters: int) -> float:
     """CPU seconds per iteration of this row's finished runs in ``out`` (table1.sh's
     ``train_time.txt``: wall and user CPU seconds of a whole run), else the measured constant."""
-    cpu = [float(t.read_text().split()[1]) for t in sorted((out / "runs" / row.slug).glob("seed*/train_time.txt"))
-           if len(t.read_text().split()) == 2]
+    cpu = [
+        float(t.read_text().split()[1])
+        for t in sorted((out / "runs" / row.slug).glob("seed*/train_time.txt"))
+        if len(t.read_text().split()) == 2
+    ]
     return statistics.fmean(cpu) / iters if cpu else MEASURED_SECONDS_PER_ITER[row.slug]
 
 
@@ -129,16 +139,26 @@ def check_budget(out: Path, stamp: str) -> None:
     path.write_text(stamp)
 
 
-def plan(config: str, iters: int | None, seeds: Sequence[int], jobs: int, out: Path, extra: Sequence[str] = (),
-         data: str = "", eval_views: int = 48) -> str:
+def plan(
+    config: str,
+    iters: int | None,
+    seeds: Sequence[int],
+    jobs: int,
+    out: Path,
+    extra: Sequence[str] = (),
+    data: str = "",
+    eval_views: int = 48,
+) -> str:
     """Write ``out/plan.tsv``; return the budget text to print. ``data``: the builds and the
     evaluation protocol, recorded with the budget; ``eval_views``: input views each run is scored on."""
     per_run = EVAL_START_SECONDS + eval_views * EVAL_SECONDS_PER_VIEW  # training start-up is in the rates
     recipe = load_config(config)
     iters = iters or recipe.optim.max_iter
     budget = budget_overrides(recipe, iters) + list(extra)
-    check_budget(out, f"config={config} (resolved sha256 {recipe_digest(config, budget)})\n"
-                      f"overrides={' '.join(budget)}\n{data}\n")
+    check_budget(
+        out,
+        f"config={config} (resolved sha256 {recipe_digest(config, budget)})\noverrides={' '.join(budget)}\n{data}\n",
+    )
     lines, trained, cost, rates = [], [], 0.0, []
     for row in TRAINED:
         overrides = budget + list(row.overrides)
@@ -151,7 +171,9 @@ def plan(config: str, iters: int | None, seeds: Sequence[int], jobs: int, out: P
             cost += len(seeds) * (iters * rate + per_run)
     (out / "plan.tsv").write_text("\n".join(lines) + "\n")
     runs = len(trained) * len(seeds)
-    skipped = [f"{label}: {status}" for _, label, status, _ in (line.split("\t") for line in lines) if status != "train"]
+    skipped = [
+        f"{label}: {status}" for _, label, status, _ in (line.split("\t") for line in lines) if status != "train"
+    ]
     text = [
         f"budget: {len(trained)} trained rows x {len(seeds)} seeds ({', '.join(map(str, seeds))}) = {runs} runs of "
         f"{iters} iterations ({runs * iters:,} in all), recipe {config}, {jobs} at a time with 1 thread each",
@@ -176,8 +198,18 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("extra", nargs="*", metavar="key=value", help="more overrides for every run")
     args = p.parse_args(argv)
     try:
-        print(plan(args.config, args.iters, [int(s) for s in args.seeds.split(",")], args.jobs, Path(args.out), args.extra,
-                   args.data, args.eval_views))
+        print(
+            plan(
+                args.config,
+                args.iters,
+                [int(s) for s in args.seeds.split(",")],
+                args.jobs,
+                Path(args.out),
+                args.extra,
+                args.data,
+                args.eval_views,
+            )
+        )
     except (ConfigError, ValueError) as exc:
         print(f"table1_plan: error: {exc}", file=sys.stderr)
         return 2

@@ -9,6 +9,7 @@ Reads the output folder table1.sh lays out: ``plan.tsv`` (the trained rows and t
 std is the sample std (ddof=1) over the seeds that finished; one seed prints its mean and n=1.
 Each row names the checkpoint its runs scored (the run folder's last checkpoint).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -86,7 +87,9 @@ def read_runs(out: Path, row: Row) -> list[Run]:
         if match is None or not metrics_json.is_file():
             continue
         checkpoint, iteration = scored_checkpoint(seed_dir / "train")
-        runs.append(Run(int(match.group(1)), str(checkpoint.relative_to(out)), iteration, predictor_metrics(metrics_json)))
+        runs.append(
+            Run(int(match.group(1)), str(checkpoint.relative_to(out)), iteration, predictor_metrics(metrics_json))
+        )
     return sorted(runs, key=lambda r: r.seed)
 
 
@@ -105,7 +108,9 @@ def summarize(out: Path) -> list[RowSummary]:
     for row in ROWS:
         if not row.trained:
             if baselines.is_file():
-                summaries.append(RowSummary(row, "baseline", [Run(0, "–", 0, predictor_metrics(baselines, row.baseline))]))
+                summaries.append(
+                    RowSummary(row, "baseline", [Run(0, "–", 0, predictor_metrics(baselines, row.baseline))])
+                )
             else:
                 summaries.append(RowSummary(row, "no finished run"))
         elif row.slug in plan:  # rows of this checkout's plan; the plan's status says why a row did not train
@@ -149,10 +154,16 @@ def _markdown(header: list[str], rows: list[list[str]]) -> str:
 def markdown(summaries: Sequence[RowSummary]) -> str:
     """The table (mean ± std over seeds) and, below it, every run with the checkpoint it scored."""
     header = ["Model"] + [c.title for c in TABLE_COLUMNS] + ["Seeds", "Checkpoint"]
-    table = _markdown(header, [[s.row.label] + [cell(s, c) for c in TABLE_COLUMNS] + [seeds_cell(s), checkpoints_cell(s)]
-                               for s in summaries])
-    per_run = [[s.row.label, str(r.seed)] + [cell(RowSummary(s.row, s.status, [r]), c) for c in TABLE_COLUMNS] + [r.checkpoint]
-               for s in summaries if s.status == "trained" for r in s.runs]
+    table = _markdown(
+        header,
+        [[s.row.label] + [cell(s, c) for c in TABLE_COLUMNS] + [seeds_cell(s), checkpoints_cell(s)] for s in summaries],
+    )
+    per_run = [
+        [s.row.label, str(r.seed)] + [cell(RowSummary(s.row, s.status, [r]), c) for c in TABLE_COLUMNS] + [r.checkpoint]
+        for s in summaries
+        if s.status == "trained"
+        for r in s.runs
+    ]
     runs = _markdown(["Model", "Seed"] + [c.title for c in TABLE_COLUMNS] + ["Checkpoint scored"], per_run)
     return f"{table}\n\nEvery run:\n\n{runs}\n"
 
@@ -164,17 +175,30 @@ def as_json(summaries: Sequence[RowSummary]) -> list[dict[str, Any]]:
         for c in TABLE_COLUMNS:
             mean, std = s.mean_std(c.metric)
             metrics[c.metric] = {"mean": mean, "std": std, "values": s.values(c.metric)}
-        rows.append({"label": s.row.label, "slug": s.row.slug, "status": s.status, "n": len(s.runs), "metrics": metrics,
-                     "runs": [{"seed": r.seed, "checkpoint": r.checkpoint, "iteration": r.iteration} for r in s.runs
-                              if s.status == "trained"]})
+        rows.append(
+            {
+                "label": s.row.label,
+                "slug": s.row.slug,
+                "status": s.status,
+                "n": len(s.runs),
+                "metrics": metrics,
+                "runs": [
+                    {"seed": r.seed, "checkpoint": r.checkpoint, "iteration": r.iteration}
+                    for r in s.runs
+                    if s.status == "trained"
+                ],
+            }
+        )
     return rows
 
 
 def run_line(eval_dir: Path) -> str:
     """One run's held-out metrics, in the table's units, for table1.sh's progress lines."""
     metrics = predictor_metrics(eval_dir / "metrics.json")
-    return ", ".join(f"{c.title} {'–' if metrics.get(c.metric) is None else f'{metrics[c.metric] * c.scale:.{c.decimals}f}'}"
-                     for c in TABLE_COLUMNS)
+    return ", ".join(
+        f"{c.title} {'–' if metrics.get(c.metric) is None else f'{metrics[c.metric] * c.scale:.{c.decimals}f}'}"
+        for c in TABLE_COLUMNS
+    )
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -1,4 +1,5 @@
 """Fixtures shared by every test folder."""
+
 import sys
 from pathlib import Path
 

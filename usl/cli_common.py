@@ -12,6 +12,7 @@ every CLI parses its arguments first and imports the heavy modules afterwards. I
 ``usl`` so that the pipelines (which may import usl) and usl (which never imports pipelines)
 share it.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -37,11 +38,20 @@ class HelpFormatter(argparse.RawDescriptionHelpFormatter):
         return text
 
 
-def make_parser(prog: str, doc: str | None, parents: Sequence[argparse.ArgumentParser] = (), epilog: str | None = None,
-                ) -> argparse.ArgumentParser:
+def make_parser(
+    prog: str,
+    doc: str | None,
+    parents: Sequence[argparse.ArgumentParser] = (),
+    epilog: str | None = None,
+) -> argparse.ArgumentParser:
     """A parser in the house style; ``doc`` is normally the CLI module's ``__doc__``."""
-    return argparse.ArgumentParser(prog=prog, description=(doc or "").strip("\n"), epilog=epilog,
-                                   formatter_class=HelpFormatter, parents=list(parents))
+    return argparse.ArgumentParser(
+        prog=prog,
+        description=(doc or "").strip("\n"),
+        epilog=epilog,
+        formatter_class=HelpFormatter,
+        parents=list(parents),
+    )
 
 
 def common_options(
@@ -86,7 +96,9 @@ def resolution(text: str) -> tuple[int, int]:
     """``WxH`` (``640x480``) or one int for a square image (``512``) -> ``(width, height)``."""
     match = re.fullmatch(r"\s*(\d+)\s*(?:[xX]\s*(\d+))?\s*", text)
     if not match:
-        raise argparse.ArgumentTypeError(f"{text!r} is not WIDTHxHEIGHT (e.g. 640x480) or one size for a square (e.g. 512)")
+        raise argparse.ArgumentTypeError(
+            f"{text!r} is not WIDTHxHEIGHT (e.g. 640x480) or one size for a square (e.g. 512)"
+        )
     width = int(match[1])
     height = int(match[2]) if match[2] else width
     if min(width, height) < 1:
@@ -98,17 +110,28 @@ class _DeprecatedAlias(argparse.Action):
     """An old spelling of another option: warns once, then does exactly what that option does."""
 
     def __init__(self, option_strings: list[str], dest: str, target: argparse.Action, **_: Any):
-        super().__init__(option_strings, target.dest, nargs=target.nargs, const=target.const, type=target.type,
-                         choices=target.choices, metavar=target.metavar, default=argparse.SUPPRESS,
-                         help=argparse.SUPPRESS)
+        super().__init__(
+            option_strings,
+            target.dest,
+            nargs=target.nargs,
+            const=target.const,
+            type=target.type,
+            choices=target.choices,
+            metavar=target.metavar,
+            default=argparse.SUPPRESS,
+            help=argparse.SUPPRESS,
+        )
         self.target = target
 
     def __call__(self, parser, namespace, values, option_string=None):  # type: ignore[no-untyped-def]
         new = self.target.option_strings[0]
         if (parser.prog, str(option_string)) not in _warned:
             _warned.add((parser.prog, str(option_string)))
-            print(f"{parser.prog}: warning: {option_string} is deprecated and will be removed in the next release; "
-                  f"use {new}", file=sys.stderr)
+            print(
+                f"{parser.prog}: warning: {option_string} is deprecated and will be removed in the next release; "
+                f"use {new}",
+                file=sys.stderr,
+            )
         self.target(parser, namespace, values, new)
 
 

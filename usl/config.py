@@ -8,6 +8,7 @@ defaults; ``_base_: other.yaml`` inherits another recipe first. Overrides use do
 and the file, so a typo never silently trains with a default. The resolved config (every field)
 is saved in the run folder and in each checkpoint.
 """
+
 from __future__ import annotations
 
 import warnings
@@ -60,7 +61,7 @@ class ColorJitterConfig:
 
 @dataclass
 class DataConfig:
-    root: str = ""  # records folder (DESIGN.md §3)
+    root: str = ""  # records folder (docs/design.md §3)
     train_split: str = "train"  # split the model trains on
     val_split: str = "val"  # split of the periodic validation (``val.*``) and of usl-eval's default
     num_views: int = 5  # M: the input view plus M - 1 other views

@@ -4,6 +4,7 @@ The doc line of a field is the comment written beside it in its dataclass (``lr:
 ...``), or the comment block right above it. Reading the comments from the source keeps one place
 to document a key, where the key is defined, so the listing cannot drift from the code.
 """
+
 from __future__ import annotations
 
 import ast

@@ -1,6 +1,7 @@
 """Config plumbing with no knowledge of USL's fields: dataclass <-> dict with checked keys and
 types, YAML recipes with ``_base_`` inheritance, and ``key=value`` overrides (``usl.config`` builds
 the recipes' ``Config`` on top of it)."""
+
 from __future__ import annotations
 
 import copy

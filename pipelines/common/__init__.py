@@ -1,4 +1,5 @@
 """Shared machinery of the offline pipelines: the resumable, parallel, atomic build driver."""
+
 from .driver import (
     BuildOptions,
     BuildSummary,

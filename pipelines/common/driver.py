@@ -8,6 +8,7 @@ a shard before building it, and whichever finishes the last shard writes the man
 A ``build_scene`` that writes its rows through ``frame_sink`` streams long scenes via spill files,
 so neither the worker nor this process ever holds a whole long scene.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -78,15 +79,22 @@ class BuildSummary:
             text += f" ({self.failed_scenes} scene(s) not converted, reasons in the manifest's skips)"
         if self.manifest_written:
             return text + "; manifest.json written"
-        return text + (f"; manifest not written yet: {len(self.pending_shards)} shard(s) still to build by other "
-                       "runs on this --out (the last to finish writes it), or re-run to finish them")
+        return text + (
+            f"; manifest not written yet: {len(self.pending_shards)} shard(s) still to build by other "
+            "runs on this --out (the last to finish writes it), or re-run to finish them"
+        )
 
 
 def build_common_options(seed: str | None = None) -> argparse.ArgumentParser:
     """The parent parser of every pipeline CLI: ``--out``, ``--workers``, ``--quiet`` (and ``--seed``
     with its help, for pipelines that draw random numbers) in usl's shared style."""
-    return common_options(out="dataset folder to create or resume", out_required=True,
-                          workers="processes building scenes in parallel", seed=seed, quiet="no progress bar")
+    return common_options(
+        out="dataset folder to create or resume",
+        out_required=True,
+        workers="processes building scenes in parallel",
+        seed=seed,
+        quiet="no progress bar",
+    )
 
 
 def add_build_arguments(parser: argparse.ArgumentParser, skip_bad_scenes: bool = False) -> None:
@@ -94,15 +102,30 @@ def add_build_arguments(parser: argparse.ArgumentParser, skip_bad_scenes: bool =
     ``skip_bad_scenes`` is that pipeline's default."""
     parser.add_argument("--num-shards", type=int, default=1, help="split the build across this many machines")
     parser.add_argument("--shard-index", type=int, default=0, help="which part of --num-shards this run builds")
-    parser.add_argument("--executor", choices=EXECUTORS, default="local",
-                        help="local: this machine (--workers processes); ray: Ray tasks on a cluster, same output")
-    parser.add_argument("--ray-address", default=None,
-                        help="Ray cluster to use with --executor ray (e.g. auto, ray://head:10001); "
-                             "default: start a local Ray instance")
-    parser.add_argument("--skip-bad-scenes", action=argparse.BooleanOptionalAction, default=skip_bad_scenes,
-                        help="record a scene that fails to convert as a skip (reason in the manifest) and go on")
-    parser.add_argument("--claim-timeout", type=float, default=STALE_AFTER_SECONDS,
-                        help="seconds without a heartbeat after which another machine's shard claim is taken over")
+    parser.add_argument(
+        "--executor",
+        choices=EXECUTORS,
+        default="local",
+        help="local: this machine (--workers processes); ray: Ray tasks on a cluster, same output",
+    )
+    parser.add_argument(
+        "--ray-address",
+        default=None,
+        help="Ray cluster to use with --executor ray (e.g. auto, ray://head:10001); "
+        "default: start a local Ray instance",
+    )
+    parser.add_argument(
+        "--skip-bad-scenes",
+        action=argparse.BooleanOptionalAction,
+        default=skip_bad_scenes,
+        help="record a scene that fails to convert as a skip (reason in the manifest) and go on",
+    )
+    parser.add_argument(
+        "--claim-timeout",
+        type=float,
+        default=STALE_AFTER_SECONDS,
+        help="seconds without a heartbeat after which another machine's shard claim is taken over",
+    )
 
 
 def build_options_from_args(args: argparse.Namespace) -> BuildOptions:
@@ -114,13 +137,31 @@ def build_options_from_args(args: argparse.Namespace) -> BuildOptions:
         raise UslError(f"--claim-timeout must be > 0 seconds, got {args.claim_timeout}")
     if args.ray_address is not None and args.executor != "ray":
         raise UslError("--ray-address needs --executor ray")
-    return BuildOptions(args.out, args.workers, args.num_shards, args.shard_index, not args.quiet, args.executor,
-                        args.ray_address, args.skip_bad_scenes, args.claim_timeout)
+    return BuildOptions(
+        args.out,
+        args.workers,
+        args.num_shards,
+        args.shard_index,
+        not args.quiet,
+        args.executor,
+        args.ray_address,
+        args.skip_bad_scenes,
+        args.claim_timeout,
+    )
 
 
 # Options that say how to run, not what to build: a run may change them and still resume or join.
-RUN_OPTIONS = {"out", "workers", "num_shards", "shard_index", "quiet", "executor", "ray_address",
-               "skip_bad_scenes", "claim_timeout"}
+RUN_OPTIONS = {
+    "out",
+    "workers",
+    "num_shards",
+    "shard_index",
+    "quiet",
+    "executor",
+    "ray_address",
+    "skip_bad_scenes",
+    "claim_timeout",
+}
 
 
 def _jsonable(value: Any) -> Any:
@@ -180,7 +221,9 @@ class SceneBuilder:
             return BuiltScene(SceneRecord(scene_id, [], skips=[Skip(f"{FAILED_SCENE}{error}", path)]), error)
 
 
-def _claimed_units(todo: list[ShardPlan], owner: Owner, state: BuildState) -> Iterator[tuple[tuple[ShardPlan, int], Any]]:
+def _claimed_units(
+    todo: list[ShardPlan], owner: Owner, state: BuildState
+) -> Iterator[tuple[tuple[ShardPlan, int], Any]]:
     """Units of the shards this run wins the claim of, claimed one shard at a time as they are drawn.
 
     Shards another live process held are tried once more at the end: it may have died meanwhile.
@@ -193,8 +236,9 @@ def _claimed_units(todo: list[ShardPlan], owner: Owner, state: BuildState) -> It
         yield from _units_if_claimed(plan, owner, state)
 
 
-def _units_if_claimed(plan: ShardPlan, owner: Owner,
-                      state: BuildState) -> Generator[tuple[tuple[ShardPlan, int], Any], None, bool]:
+def _units_if_claimed(
+    plan: ShardPlan, owner: Owner, state: BuildState
+) -> Generator[tuple[tuple[ShardPlan, int], Any], None, bool]:
     """The plan's units if this run claims it (returns False if a live process holds the claim)."""
     name = shard_name(plan.split, plan.index)
     if not owner.claim(name, on_takeover=partial(state.remove_temp_files, plan.split, plan.index)):
@@ -248,9 +292,11 @@ def run_build(
         summary.skipped = sum(s["count"] for r in results for s in r["skips"])
         failed = [s for r in results for s in r["skips"] if s["reason"].startswith(FAILED_SCENE)]
         if failed and not any(r["frames"]["rows"] for r in results):
-            raise UslError(f"every scene built so far failed to convert or was empty, e.g. {failed[0]['path']}: "
-                           f"{failed[0]['reason']}; fix the input (the failed scenes are recorded as skips in "
-                           f"{options.out}: delete it before re-running)")
+            raise UslError(
+                f"every scene built so far failed to convert or was empty, e.g. {failed[0]['path']}: "
+                f"{failed[0]['reason']}; fix the input (the failed scenes are recorded as skips in "
+                f"{options.out}: delete it before re-running)"
+            )
         if not summary.pending_shards:
             publish_dataset(options.out, build_manifest(spec, results, creator, state.fingerprint))
             summary.manifest_written = True
@@ -260,16 +306,27 @@ def run_build(
     return summary
 
 
-def _build_shards(options: BuildOptions, spec: dict[str, Any], state: BuildState, owner: Owner,
-                  todo: list[ShardPlan], build_scene: Callable[[Any], SceneRecord],
-                  worker_initializer: Callable[[], None] | None, summary: BuildSummary) -> None:
+def _build_shards(
+    options: BuildOptions,
+    spec: dict[str, Any],
+    state: BuildState,
+    owner: Owner,
+    todo: list[ShardPlan],
+    build_scene: Callable[[Any], SceneRecord],
+    worker_initializer: Callable[[], None] | None,
+    summary: BuildSummary,
+) -> None:
     """Claim, build and commit shards of ``todo`` one after the other, scenes in parallel."""
     metadata = dataset_metadata(spec)
     spill = state.spill_dir if options.executor == "local" else None  # Ray results travel in memory
     initializer = partial(init_build_process, spill, owner.token, worker_initializer)
     builder = SceneBuilder(build_scene, options.skip_bad_scenes)
-    bar = tqdm(total=sum(len(p.units) for p in todo), desc=f"{spec['name']}: scenes", unit="scene",
-               disable=not options.progress)
+    bar = tqdm(
+        total=sum(len(p.units) for p in todo),
+        desc=f"{spec['name']}: scenes",
+        unit="scene",
+        disable=not options.progress,
+    )
     writer: ShardWriter | None = None
     try:
         with make_executor(options.executor, options.workers, options.ray_address, initializer) as executor:

@@ -5,6 +5,7 @@ order, so the shard writer sees the same stream of scenes, and writes the same b
 runs them. Submission is lazy and bounded (``window`` scenes in flight): the driver claims a
 shard only when there is room to start its scenes, which leaves the others to other processes.
 """
+
 from __future__ import annotations
 
 import multiprocessing as mp
@@ -97,13 +98,15 @@ class RayExecutor:
         return lambda: self.ray.get(ref)
 
 
-def make_executor(name: str, workers: int, ray_address: str | None,
-                  initializer: Callable[[], None]) -> LocalExecutor | RayExecutor:
+def make_executor(
+    name: str, workers: int, ray_address: str | None, initializer: Callable[[], None]
+) -> LocalExecutor | RayExecutor:
     return RayExecutor(ray_address, initializer) if name == "ray" else LocalExecutor(workers, initializer)
 
 
-def ordered_results(executor: LocalExecutor | RayExecutor, fn: Callable[[Any], Any],
-                    items: Iterable[tuple[Tag, Any]]) -> Iterator[tuple[Tag, Any]]:
+def ordered_results(
+    executor: LocalExecutor | RayExecutor, fn: Callable[[Any], Any], items: Iterable[tuple[Tag, Any]]
+) -> Iterator[tuple[Tag, Any]]:
     """``(tag, fn(unit))`` for each ``(tag, unit)`` of ``items``, in order, at most ``window`` in flight.
 
     ``items`` is drawn only when a slot is free, so its side effects (claiming a shard) happen

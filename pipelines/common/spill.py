@@ -5,6 +5,7 @@ and its own temp-file token through the executor's initializer; ``build_scene`` 
 call ``frame_sink(scene_id)`` and need not know whether they run inside a build, in which process,
 or how long the scene will be.
 """
+
 from __future__ import annotations
 
 from pathlib import Path

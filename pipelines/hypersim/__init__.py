@@ -1,4 +1,4 @@
-"""``usl-convert-hypersim``: downloaded Hypersim scenes -> multi-view records (DESIGN.md §3-4).
+"""``usl-convert-hypersim``: downloaded Hypersim scenes -> multi-view records (docs/design.md §3-4).
 
 Decisions a user of the records should know (details in each module):
 

@@ -1,4 +1,4 @@
-"""Hypersim cameras in our conventions (DESIGN.md §2): intrinsics from ``M_cam_from_uv``, poses.
+"""Hypersim cameras in our conventions (docs/design.md §2): intrinsics from ``M_cam_from_uv``, poses.
 
 Hypersim casts the ray of pixel (row i, column j) as ``d = M_cam_from_uv @ [u, v, 1]`` with
 ``u = -1 + (2j + 1) / W`` and ``v = 1 - (2i + 1) / H``, in an OpenGL-like camera frame (x right,
@@ -6,6 +6,7 @@ y up, looking down -z). With our continuous pixel coordinates ``x = j + 0.5``, `
 is ``[u, v, 1] = A @ [x, y, 1]``, and the OpenCV ray is ``F @ d`` with ``F = diag(1, -1, -1)``. So
 ``K = (F M A)^-1`` exactly, a general projective 3x3 for tilt-shift scenes.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass

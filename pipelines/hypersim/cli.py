@@ -7,6 +7,7 @@ Examples::
     usl-convert-hypersim /data/hypersim/ai_001_001 --split-csv ... --camera-csv ... --out /tmp/hs \\
         --resolution 512x384 --stride 10 --exclude-categories stuff
 """
+
 from __future__ import annotations
 
 import argparse
@@ -44,22 +45,45 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--splits", nargs="+", default=[], help="splits to convert, e.g. train val; empty: all")
     p.add_argument("--cameras", nargs="+", default=[], help="camera trajectories to convert, e.g. cam_00; empty: all")
     # dest names stay as before the rename, so build fingerprints (and resuming) are unchanged
-    p.add_argument("--stride", dest="frame_stride", type=int, default=1, metavar="N",
-                   help="convert frames whose number is a multiple of this")
+    p.add_argument(
+        "--stride",
+        dest="frame_stride",
+        type=int,
+        default=1,
+        metavar="N",
+        help="convert frames whose number is a multiple of this",
+    )
     p.add_argument("--blacklist", nargs="+", default=[], help="scenes or scene/camera to leave out")
     p.add_argument("--blacklist-file", type=Path, default=None, help="more blacklist entries, one per line")
-    p.add_argument("--input-format", choices=INPUT_FORMATS, default="hdf5",
-                   help="hdf5: the released files; exr: renderer EXRs (see pipelines/hypersim/paths.py)")
-    p.add_argument("--resolution", default=None, metavar="WxH",
-                   help="stored image size, e.g. 512x384 (one int: square); not given: as rendered")
-    p.add_argument("--image-codec", choices=("jpeg", "png"), default="jpeg",
-                   help="colour image encoding")
-    p.add_argument("--jpeg-quality", dest="image_quality", type=int, default=95, metavar="Q", help="JPEG quality (1..100)")
+    p.add_argument(
+        "--input-format",
+        choices=INPUT_FORMATS,
+        default="hdf5",
+        help="hdf5: the released files; exr: renderer EXRs (see pipelines/hypersim/paths.py)",
+    )
+    p.add_argument(
+        "--resolution",
+        default=None,
+        metavar="WxH",
+        help="stored image size, e.g. 512x384 (one int: square); not given: as rendered",
+    )
+    p.add_argument("--image-codec", choices=("jpeg", "png"), default="jpeg", help="colour image encoding")
+    p.add_argument(
+        "--jpeg-quality", dest="image_quality", type=int, default=95, metavar="Q", help="JPEG quality (1..100)"
+    )
     p.add_argument("--no-depth", action="store_true", help="do not store per-pixel depth")
-    p.add_argument("--min-instance-pixels", type=int, default=100,
-                   help="drop (and count) instance masks smaller than this at the stored resolution")
-    p.add_argument("--exclude-categories", nargs="+", default=[],
-                   help="NYU40 names or ids to leave out; 'stuff' = wall, floor, ceiling")
+    p.add_argument(
+        "--min-instance-pixels",
+        type=int,
+        default=100,
+        help="drop (and count) instance masks smaller than this at the stored resolution",
+    )
+    p.add_argument(
+        "--exclude-categories",
+        nargs="+",
+        default=[],
+        help="NYU40 names or ids to leave out; 'stuff' = wall, floor, ceiling",
+    )
     p.add_argument("--scenes-per-shard", type=int, default=4, help="Hypersim scenes per output shard")
     deprecated_alias(p, "--frame-stride", "--stride")
     deprecated_alias(p, "--image-quality", "--jpeg-quality")
@@ -107,23 +131,52 @@ def main(argv: list[str] | None = None) -> int:
             raise UslError("--stride and --scenes-per-shard must be >= 1, --min-instance-pixels >= 0")
         if not 1 <= args.image_quality <= 100:
             raise UslError(f"--jpeg-quality {args.image_quality}: must lie in 1..100")
-        options = ConvertOptions(args.input_format, parse_resolution(args.resolution), args.image_codec,
-                                 args.image_quality, args.min_instance_pixels,
-                                 parse_categories(args.exclude_categories, spec), not args.no_depth)
-        config = PlanConfig(tuple(args.splits), tuple(args.cameras), args.frame_stride,
-                            parse_blacklist(args.blacklist, args.blacklist_file), args.scenes_per_shard)
+        options = ConvertOptions(
+            args.input_format,
+            parse_resolution(args.resolution),
+            args.image_codec,
+            args.image_quality,
+            args.min_instance_pixels,
+            parse_categories(args.exclude_categories, spec),
+            not args.no_depth,
+        )
+        config = PlanConfig(
+            tuple(args.splits),
+            tuple(args.cameras),
+            args.frame_stride,
+            parse_blacklist(args.blacklist, args.blacklist_file),
+            args.scenes_per_shard,
+        )
         scenes = discover_scenes([Path(s) for s in args.scenes])
-        plans, notes = plan_shards(scenes, read_split_csv(args.split_csv), read_camera_csv(args.camera_csv),
-                                   options, config, args.split_csv, args.camera_csv)
+        plans, notes = plan_shards(
+            scenes,
+            read_split_csv(args.split_csv),
+            read_camera_csv(args.camera_csv),
+            options,
+            config,
+            args.split_csv,
+            args.camera_csv,
+        )
         for note in notes:
             print(f"{COMMAND}: not converted: {note}", file=sys.stderr)
         if not plans:
             raise UslError("nothing to convert: no scene folder has a frame left after the split and filters")
-        fingerprint = {**fingerprint_from_args(args), "scenes": {k: str(v) for k, v in scenes.items()},
-                       "blacklist": sorted(config.blacklist), "split_csv_sha256": _sha256(args.split_csv),
-                       "camera_csv_sha256": _sha256(args.camera_csv)}
-        summary = run_build(build, spec, fingerprint, plans, build_trajectory, creator_from_args(COMMAND, args),
-                            worker_initializer=single_threaded_worker)
+        fingerprint = {
+            **fingerprint_from_args(args),
+            "scenes": {k: str(v) for k, v in scenes.items()},
+            "blacklist": sorted(config.blacklist),
+            "split_csv_sha256": _sha256(args.split_csv),
+            "camera_csv_sha256": _sha256(args.camera_csv),
+        }
+        summary = run_build(
+            build,
+            spec,
+            fingerprint,
+            plans,
+            build_trajectory,
+            creator_from_args(COMMAND, args),
+            worker_initializer=single_threaded_worker,
+        )
         print(f"{COMMAND}: {summary.describe()}")
         if summary.manifest_written:
             print(describe_dataset(args.out, load_manifest(args.out)))

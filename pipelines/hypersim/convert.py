@@ -5,6 +5,7 @@ resolution. Categories are decided once per trajectory from the NYU40 votes of a
 frames, so an instance has the same category in every view; then the exclusion and minimum-size
 rules are applied and counted.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -123,8 +124,9 @@ def trajectory_categories(frames: list[ConvertedFrame]) -> dict[int, int]:
     return {i: int(np.argmax(v[1:])) + 1 for i, v in totals.items() if v[1:].sum() > 0}
 
 
-def _rows(unit: TrajectoryUnit, K: np.ndarray, size: tuple[int, int],
-          frames: list[ConvertedFrame]) -> tuple[list[dict[str, Any]], list[Skip]]:
+def _rows(
+    unit: TrajectoryUnit, K: np.ndarray, size: tuple[int, int], frames: list[ConvertedFrame]
+) -> tuple[list[dict[str, Any]], list[Skip]]:
     options = unit.options
     categories = trajectory_categories(frames)
     excluded = set(options.excluded_categories)
@@ -142,8 +144,11 @@ def _rows(unit: TrajectoryUnit, K: np.ndarray, size: tuple[int, int],
                 small += 1
             else:
                 instances.append({**entry, "category_id": category})
-        rows.append(frame_row(unit.scene_id, frame.view_id, frame.image, K, frame.pose, instances,
-                              size[1], size[0], frame.depth))
+        rows.append(
+            frame_row(
+                unit.scene_id, frame.view_id, frame.image, K, frame.pose, instances, size[1], size[0], frame.depth
+            )
+        )
     skips = []
     if unlabelled:
         skips.append(Skip(UNLABELLED_REASON, unit.scene_id, unlabelled))
@@ -186,4 +191,3 @@ def build_trajectory(unit: TrajectoryUnit) -> SceneRecord:
             skips.append(Skip(skip.reason, skip.path))
     rows, instance_skips = _rows(unit, converter.K, converter.size, converted)
     return SceneRecord(unit.scene_id, rows, skips=skips + instance_skips)
-

@@ -3,6 +3,7 @@
 Both readers return the same ``RawFrame``; everything downstream is format-agnostic. A frame that
 cannot be read raises ``FrameSkip`` with the offending file.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -29,9 +30,13 @@ class RawFrame:
 
     def check(self, width: int, height: int, where: Path) -> None:
         """Shapes must agree with each other and with the scene's camera model."""
-        shapes = {"color": self.rgb.shape[:2], "render_entity_id": self.entity.shape,
-                  "depth": self.distance.shape, "semantic": self.semantic.shape,
-                  "semantic_instance": self.instance.shape}
+        shapes = {
+            "color": self.rgb.shape[:2],
+            "render_entity_id": self.entity.shape,
+            "depth": self.distance.shape,
+            "semantic": self.semantic.shape,
+            "semantic_instance": self.instance.shape,
+        }
         if self.rgb.ndim != 3 or self.rgb.shape[2] != 3 or len(set(shapes.values())) != 1:
             listing = ", ".join(f"{k} {v}" for k, v in shapes.items())
             raise FrameSkip(f"frame arrays disagree in shape ({listing})", where)
@@ -75,8 +80,10 @@ def _float32_channels(dataset: h5py.Dataset) -> np.ndarray:
 def _labels(paths: TrajectoryPaths, frame: int) -> tuple[np.ndarray, np.ndarray]:
     semantic_file = paths.geometry_hdf5(frame, "semantic")
     instance_file = paths.geometry_hdf5(frame, "semantic_instance")
-    return (_integer_labels(read_hdf5(semantic_file, "semantic"), semantic_file),
-            _integer_labels(read_hdf5(instance_file, "semantic_instance"), instance_file))
+    return (
+        _integer_labels(read_hdf5(semantic_file, "semantic"), semantic_file),
+        _integer_labels(read_hdf5(instance_file, "semantic_instance"), instance_file),
+    )
 
 
 def read_hdf5_frame(paths: TrajectoryPaths, frame: int) -> RawFrame:
@@ -118,14 +125,15 @@ def _entity_ids(raw: np.ndarray, path: Path) -> np.ndarray:
     return ids
 
 
-def read_exr_frame(paths: TrajectoryPaths, frame: int, camera_centre: np.ndarray,
-                   meters_per_asset_unit: float) -> RawFrame:
+def read_exr_frame(
+    paths: TrajectoryPaths, frame: int, camera_centre: np.ndarray, meters_per_asset_unit: float
+) -> RawFrame:
     """Renderer EXRs: distance is ``|position - camera centre|`` in metres, as Hypersim derives it."""
     geometry_file = paths.geometry_exr(frame)
     entity_raw, *position = _exr_channels(geometry_file, (EXR_ENTITY,) + EXR_POSITION)
     entity = _entity_ids(entity_raw, geometry_file)
     offsets = np.stack([c.astype(np.float64) - camera_centre[k] for k, c in enumerate(position)], axis=-1)
-    distance = (np.sqrt((offsets ** 2).sum(axis=-1)) * meters_per_asset_unit).astype(np.float32)
+    distance = (np.sqrt((offsets**2).sum(axis=-1)) * meters_per_asset_unit).astype(np.float32)
     distance[entity < 0] = np.nan
     semantic, instance = _labels(paths, frame)
     rgb = np.stack([c.astype(np.float32) for c in _exr_channels(paths.final_exr(frame), EXR_COLOUR)], axis=-1)

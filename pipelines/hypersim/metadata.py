@@ -2,6 +2,7 @@
 
 Every problem is a ``UslError`` naming the file, found before any frame is converted.
 """
+
 from __future__ import annotations
 
 import csv
@@ -14,8 +15,14 @@ from usl.records import UslError
 
 from .paths import scene_metadata_file
 
-SPLIT_COLUMNS = ("scene_name", "camera_name", "frame_id", "included_in_public_release", "exclude_reason",
-                 "split_partition_name")
+SPLIT_COLUMNS = (
+    "scene_name",
+    "camera_name",
+    "frame_id",
+    "included_in_public_release",
+    "exclude_reason",
+    "split_partition_name",
+)
 M_COLUMNS = tuple(f"M_cam_from_uv_{i}{j}" for i in range(3) for j in range(3))
 CAMERA_COLUMNS = ("scene_name", "settings_output_img_width", "settings_output_img_height") + M_COLUMNS
 

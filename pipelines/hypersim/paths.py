@@ -17,6 +17,7 @@ EXR layout (renderer output converted with ``vrimg2exr``, in the renderer's own 
 EXR carries render-entity ids only; the NYU40 and instance labels come from Hypersim's mesh metadata,
 so the two label images must sit beside the EXR files exactly as in the HDF5 layout.
 """
+
 from __future__ import annotations
 
 import re

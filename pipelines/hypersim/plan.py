@@ -4,6 +4,7 @@ Decided from the arguments, the split CSV and the scene folders alone (never fro
 so every machine of a ``--num-shards`` build plans the same shards. All trajectories of one
 Hypersim scene go to the same shard; shards hold ``scenes_per_shard`` Hypersim scenes.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
@@ -66,8 +67,14 @@ def parse_blacklist(entries: list[str], file: Path | None) -> frozenset[str]:
     return frozenset(text for text, _ in items)
 
 
-def _scene_units(scene: str, folder: Path, trajectories: dict[str, TrajectorySplit], model: CameraModel,
-                 options: ConvertOptions, config: PlanConfig) -> list[TrajectoryUnit]:
+def _scene_units(
+    scene: str,
+    folder: Path,
+    trajectories: dict[str, TrajectorySplit],
+    model: CameraModel,
+    options: ConvertOptions,
+    config: PlanConfig,
+) -> list[TrajectoryUnit]:
     """The trajectory units of one scene; exclusions of whole trajectories ride on its first unit."""
     units: list[TrajectoryUnit] = []
     orphaned: list[tuple[str, str, int]] = []
@@ -89,9 +96,15 @@ def _scene_units(scene: str, folder: Path, trajectories: dict[str, TrajectorySpl
     return units
 
 
-def plan_shards(scenes: dict[str, Path], split_table: dict[tuple[str, str], TrajectorySplit],
-                camera_models: dict[str, CameraModel], options: ConvertOptions, config: PlanConfig,
-                split_csv: Path, camera_csv: Path) -> tuple[list[ShardPlan], list[str]]:
+def plan_shards(
+    scenes: dict[str, Path],
+    split_table: dict[tuple[str, str], TrajectorySplit],
+    camera_models: dict[str, CameraModel],
+    options: ConvertOptions,
+    config: PlanConfig,
+    split_csv: Path,
+    camera_csv: Path,
+) -> tuple[list[ShardPlan], list[str]]:
     """Shard plans in output order, and one note per scene folder that yields nothing."""
     by_scene: dict[str, dict[str, TrajectorySplit]] = {}
     for (scene, camera), entry in split_table.items():
@@ -123,6 +136,6 @@ def plan_shards(scenes: dict[str, Path], split_table: dict[tuple[str, str], Traj
     for split in order:
         scene_groups = groups[split]
         for index, start in enumerate(range(0, len(scene_groups), config.scenes_per_shard)):
-            chunk = scene_groups[start:start + config.scenes_per_shard]
+            chunk = scene_groups[start : start + config.scenes_per_shard]
             plans.append(ShardPlan(split, index, [unit for units in chunk for unit in units]))
     return plans, notes

@@ -11,6 +11,7 @@
   which planes at any slant pass and depth edges, creases and unknown pixels fail. Elsewhere the
   nearest source pixel is kept, so no "flying pixels" appear between objects.
 """
+
 from __future__ import annotations
 
 import cv2

@@ -5,6 +5,7 @@ gamma 1/2.2; brightness is CCIR601 YIQ luma. The scale comes from the full-resol
 resized image gets the same exposure as the original; it is then applied to the (area-)resized
 linear image, resizing in linear light as a camera would integrate it.
 """
+
 from __future__ import annotations
 
 import cv2

@@ -4,6 +4,7 @@ Entry point: ``usl-convert-scannet`` (``pipelines.scannet.cli:main``). Formats, 
 view sampler reads back: pipelines/scannet/README.md. The names below load on first use: the
 converter imports torch, and ``usl-convert-scannet --help`` must not.
 """
+
 from importlib import import_module
 
 _EXPORTS = {

@@ -10,6 +10,7 @@ instance-filt/label-filt images. See pipelines/scannet/README.md for the file fo
     usl-convert-scannet --out data/scannet_gt --scans-root ... --splits-dir ... --masks scannet-labels \\
         --label-map scannetv2-labels.combined.tsv --tracker source-ids --resolution 320x240
 """
+
 from __future__ import annotations
 
 import argparse
@@ -54,35 +55,64 @@ def parser(spec: dict) -> argparse.ArgumentParser:
     p.add_argument("--scenes", nargs="+", default=None, help="convert only these scans (must be in --splits)")
     p.add_argument("--scenes-per-shard", type=int, default=8, help="scans per output shard")
     masks = p.add_argument_group("mask source")
-    masks.add_argument("--masks", choices=("detections", "scannet-labels"), default="detections",
-                       help="detections: a 2D segmenter's COCO results; scannet-labels: ScanNet's own instance images")
+    masks.add_argument(
+        "--masks",
+        choices=("detections", "scannet-labels"),
+        default="detections",
+        help="detections: a 2D segmenter's COCO results; scannet-labels: ScanNet's own instance images",
+    )
     masks.add_argument("--detections", nargs="+", help="COCO results JSON file(s) from the segmenter")
     masks.add_argument("--detection-images", type=Path, help="COCO images JSON mapping image_id to scan frames")
-    masks.add_argument("--category-ids", choices=("coco", "contiguous"), default="coco",
-                       help="coco: category_id is a COCO id (1..90); contiguous: detectron2's 0-based class index")
+    masks.add_argument(
+        "--category-ids",
+        choices=("coco", "contiguous"),
+        default="coco",
+        help="coco: category_id is a COCO id (1..90); contiguous: detectron2's 0-based class index",
+    )
     masks.add_argument("--label-map", type=Path, help="scannetv2-labels.combined.tsv (for --masks scannet-labels)")
     masks.add_argument("--min-score", type=float, default=0.5, help="ignore detections less confident than this")
     frames = p.add_argument_group("frames")
     frames.add_argument("--stride", type=int, default=10, help="process every N-th frame of a scan")
     # dest "size" as before the rename, so build fingerprints (and resuming) are unchanged
-    frames.add_argument("--resolution", dest="size", type=parse_size, default=(640, 480), metavar="WxH",
-                        help="output resolution (one int: square), or 'native' to keep the colour frames "
-                             "(and their JPEG bytes)")
-    frames.add_argument("--jpeg-quality", type=int, default=95, metavar="Q", help="for re-encoded (resized) images (1..100)")
+    frames.add_argument(
+        "--resolution",
+        dest="size",
+        type=parse_size,
+        default=(640, 480),
+        metavar="WxH",
+        help="output resolution (one int: square), or 'native' to keep the colour frames (and their JPEG bytes)",
+    )
+    frames.add_argument(
+        "--jpeg-quality", type=int, default=95, metavar="Q", help="for re-encoded (resized) images (1..100)"
+    )
     frames.add_argument("--no-depth", action="store_true", help="do not store depth images in the records")
     track = p.add_argument_group("tracking")
-    track.add_argument("--tracker", choices=("iou", "source-ids"), default="iou",
-                       help="source-ids: use ScanNet's instance ids as tracks (only with --masks scannet-labels)")
+    track.add_argument(
+        "--tracker",
+        choices=("iou", "source-ids"),
+        default="iou",
+        help="source-ids: use ScanNet's instance ids as tracks (only with --masks scannet-labels)",
+    )
     track.add_argument("--iou-threshold", type=float, default=0.5, help="mask IoU continuing a track")
     track.add_argument("--max-missed", type=int, default=3, help="processed frames a track may go unmatched")
-    track.add_argument("--min-track-frames", type=int, default=int(spec["tracking"]["min_track_frames"]),
-                       help="observations (processed frames) a track needs to become an object")
-    track.add_argument("--match-across-categories", action="store_true",
-                       help="let a detection continue a track of another category (the track's category is then "
-                            "the score-weighted vote)")
-    track.add_argument("--warp", choices=("auto", "on", "off"), default="auto",
-                       help="warp the last mask of a track into the current frame with depth and pose "
-                            "(auto: when --stride > 1)")
+    track.add_argument(
+        "--min-track-frames",
+        type=int,
+        default=int(spec["tracking"]["min_track_frames"]),
+        help="observations (processed frames) a track needs to become an object",
+    )
+    track.add_argument(
+        "--match-across-categories",
+        action="store_true",
+        help="let a detection continue a track of another category (the track's category is then "
+        "the score-weighted vote)",
+    )
+    track.add_argument(
+        "--warp",
+        choices=("auto", "on", "off"),
+        default="auto",
+        help="warp the last mask of a track into the current frame with depth and pose (auto: when --stride > 1)",
+    )
     track.add_argument("--depth-tolerance", type=float, default=0.2, help="metres, for the warp's visibility test")
     deprecated_alias(p, "--size", "--resolution")
     return p
@@ -109,8 +139,10 @@ def scenes_by_split(args: argparse.Namespace) -> dict[str, list[str]]:
         chosen = {split: [s for s in scenes if s in wanted] for split, scenes in chosen.items()}
     missing = [s for scenes in chosen.values() for s in scenes if not (args.scans_root / s).is_dir()]
     if missing:
-        raise UslError(f"{args.scans_root}: {len(missing)} scan folder(s) missing, e.g. {', '.join(missing[:5])}; "
-                       "restrict the build with --scenes or --splits")
+        raise UslError(
+            f"{args.scans_root}: {len(missing)} scan folder(s) missing, e.g. {', '.join(missing[:5])}; "
+            "restrict the build with --scenes or --splits"
+        )
     return {split: scenes for split, scenes in chosen.items() if scenes}
 
 
@@ -119,18 +151,29 @@ def convert_options(args: argparse.Namespace) -> ConvertOptions:
     from .tracker import TrackerConfig
 
     try:
-        tracker = TrackerConfig(args.iou_threshold, args.max_missed, args.min_track_frames,
-                                args.match_across_categories)
+        tracker = TrackerConfig(
+            args.iou_threshold, args.max_missed, args.min_track_frames, args.match_across_categories
+        )
         if not 1 <= args.jpeg_quality <= 100:
             raise ValueError(f"--jpeg-quality must lie in 1..100, got {args.jpeg_quality}")
-        return ConvertOptions(args.stride, args.size, args.jpeg_quality, not args.no_depth, args.min_score,
-                              args.warp, args.depth_tolerance, tracker, args.tracker == "source-ids")
+        return ConvertOptions(
+            args.stride,
+            args.size,
+            args.jpeg_quality,
+            not args.no_depth,
+            args.min_score,
+            args.warp,
+            args.depth_tolerance,
+            tracker,
+            args.tracker == "source-ids",
+        )
     except ValueError as exc:
         raise UslError(f"bad option: {exc}") from None
 
 
-def mask_source(args: argparse.Namespace, spec: dict, scenes: set[str],
-                cache: Path) -> tuple[MaskSource, dict, Callable[[], None] | None]:
+def mask_source(
+    args: argparse.Namespace, spec: dict, scenes: set[str], cache: Path
+) -> tuple[MaskSource, dict, Callable[[], None] | None]:
     """The mask source, what of its inputs belongs in the build fingerprint, and what must run once
     the output folder is known to hold this build (splitting the detections into ``cache``)."""
     from .detections_file import DetectionsFileSource, split_detections
@@ -150,20 +193,22 @@ def mask_source(args: argparse.Namespace, spec: dict, scenes: set[str],
     for path in files:
         if not path.is_file():
             raise UslError(f"{path}: no such file")
-    source = DetectionsFileSource(str(cache), tuple((int(c["coco_id"]), int(c["id"])) for c in categories),
-                                  args.category_ids == "contiguous")
+    source = DetectionsFileSource(
+        str(cache), tuple((int(c["coco_id"]), int(c["id"])) for c in categories), args.category_ids == "contiguous"
+    )
     stamps = [[str(p), p.stat().st_size, p.stat().st_mtime_ns] for p in files]
     return source, {"detection_files": stamps}, partial(split_detections, results, args.detection_images, scenes, cache)
 
 
-def plan_shards(chosen: dict[str, list[str]], scans_root: Path, per_shard: int, masks: MaskSource,
-                options: ConvertOptions) -> list[ShardPlan]:
+def plan_shards(
+    chosen: dict[str, list[str]], scans_root: Path, per_shard: int, masks: MaskSource, options: ConvertOptions
+) -> list[ShardPlan]:
     from .convert import ScanUnit
 
     plans = []
     for split, scenes in chosen.items():
         for index, start in enumerate(range(0, len(scenes), per_shard)):
-            units = [ScanUnit(s, str(scans_root / s), masks, options) for s in scenes[start:start + per_shard]]
+            units = [ScanUnit(s, str(scans_root / s), masks, options) for s in scenes[start : start + per_shard]]
             plans.append(ShardPlan(split, index, units))
     return plans
 
@@ -194,8 +239,16 @@ def main(argv: list[str] | None = None) -> int:
         fingerprint = {**fingerprint_from_args(args), **inputs}
         from .convert import build_scene
 
-        summary = run_build(build, spec, fingerprint, plans, build_scene, creator_from_args(COMMAND, args),
-                            worker_initializer=single_threaded_worker, prepare=prepare)
+        summary = run_build(
+            build,
+            spec,
+            fingerprint,
+            plans,
+            build_scene,
+            creator_from_args(COMMAND, args),
+            worker_initializer=single_threaded_worker,
+            prepare=prepare,
+        )
     except UslError as exc:
         print(f"{COMMAND}: error: {exc}", file=sys.stderr)
         return 2

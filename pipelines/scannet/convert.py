@@ -6,6 +6,7 @@ so pass 2 reads again the frames that hold an object's observation and encodes t
 stored when no resize is needed, depth as 16-bit PNG). Nothing decoded outlives its frame, and
 encoded rows go to the build's ``frame_sink`` one by one, so memory does not grow with scan length.
 """
+
 from __future__ import annotations
 
 from collections import Counter, defaultdict
@@ -79,8 +80,9 @@ class TrackedScan:
     num_detections: int = 0
 
 
-def frame_detections(masks: ScanMasks, scan: Scan, index: int, min_score: float,
-                     size: list[int | None]) -> list[Detection]:
+def frame_detections(
+    masks: ScanMasks, scan: Scan, index: int, min_score: float, size: list[int | None]
+) -> list[Detection]:
     """The source's detections of one frame that are confident enough.
 
     Masks stay at the source's resolution (tracking compares RLEs there, no resampling); all masks
@@ -93,8 +95,10 @@ def frame_detections(masks: ScanMasks, scan: Scan, index: int, min_score: float,
         if size[0] is None:
             size[:] = det.rle["size"]
         elif list(det.rle["size"]) != size:
-            raise UslError(f"{scan.path}: frame {index}: the mask source gave a {det.rle['size']} mask after "
-                           f"{size} ones; masks of one scan must share a size")
+            raise UslError(
+                f"{scan.path}: frame {index}: the mask source gave a {det.rle['size']} mask after "
+                f"{size} ones; masks of one scan must share a size"
+            )
         out.append(det)
     return out
 

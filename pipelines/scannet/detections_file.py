@@ -15,6 +15,7 @@ Masks must be at the colour resolution of the scan (e.g. 1296x968). The main pro
 results by scan into a temporary folder (one JSON-lines file per scan), so build workers read only
 their scan's detections and never the whole file.
 """
+
 from __future__ import annotations
 
 import json
@@ -73,8 +74,10 @@ def load_images(path: Path) -> dict[int, ImageEntry]:
             raise UslError(f"{path}: image entry {image!r} lacks id, file_name, width or height") from None
         where = frame_of_file_name(str(name))
         if where is None:
-            raise UslError(f"{path}: image {image_id}: cannot tell scan and frame from file_name {name!r} "
-                           "(expected .../sceneXXXX_YY/.../<frame index>.jpg)")
+            raise UslError(
+                f"{path}: image {image_id}: cannot tell scan and frame from file_name {name!r} "
+                "(expected .../sceneXXXX_YY/.../<frame index>.jpg)"
+            )
         if image_id in entries:
             raise UslError(f"{path}: image id {image_id} appears twice")
         entries[image_id] = ImageEntry(where[0], where[1], width, height)
@@ -101,13 +104,21 @@ def split_detections(results: Iterable[Path], images_path: Path, scene_ids: set[
                 raise UslError(f"{path}: detection {k} is not an object with an image_id")
             image = images.get(det["image_id"])
             if image is None:
-                raise UslError(f"{path}: detection {k} refers to image_id {det['image_id']!r}, "
-                               f"which {images_path} does not list")
+                raise UslError(
+                    f"{path}: detection {k} refers to image_id {det['image_id']!r}, which {images_path} does not list"
+                )
             if image.scene_id not in scene_ids:
                 continue
-            line = {"src": src, "image_id": det["image_id"], "frame": image.frame, "width": image.width,
-                    "height": image.height, "category_id": det.get("category_id"), "score": det.get("score"),
-                    "segmentation": det.get("segmentation")}
+            line = {
+                "src": src,
+                "image_id": det["image_id"],
+                "frame": image.frame,
+                "width": image.width,
+                "height": image.height,
+                "category_id": det.get("category_id"),
+                "score": det.get("score"),
+                "segmentation": det.get("segmentation"),
+            }
             per_scene[image.scene_id].append(json.dumps(line))
         for scene_id, lines in per_scene.items():
             with open(out_dir / f"{scene_id}.jsonl", "a") as f:
@@ -138,13 +149,16 @@ class DetectionsFileSource:
                         by_frame[line["frame"]].append(detection)
         return ScanDetections(dict(by_frame))
 
-    def _detection(self, line: dict[str, Any], source: str, scan: ScanInfo, frames: set[int],
-                   mapping: dict[int, int]) -> Detection | None:
+    def _detection(
+        self, line: dict[str, Any], source: str, scan: ScanInfo, frames: set[int], mapping: dict[int, int]
+    ) -> Detection | None:
         where = f"{source}: image_id {line['image_id']!r}"
         width, height = scan.color_size
         if (line["width"], line["height"]) != (width, height):
-            raise UslError(f"{source}: detections for {scan.scene_id} are for {line['width']}x{line['height']} "
-                           f"images, but {scan.path} has {width}x{height} colour frames")
+            raise UslError(
+                f"{source}: detections for {scan.scene_id} are for {line['width']}x{line['height']} "
+                f"images, but {scan.path} has {width}x{height} colour frames"
+            )
         if line["frame"] not in frames:
             raise UslError(f"{where} names frame {line['frame']} of {scan.scene_id}, which {scan.path} does not have")
         coco_id = self._coco_id(line["category_id"], where)

@@ -5,6 +5,7 @@ camera-to-world, ``-inf`` when lost) and ``intrinsic/intrinsic_{color,depth}.txt
 ``extrinsic_*.txt`` files are optional). ``{i}`` is the ``.sens`` frame index, not zero-padded, so
 frames are ordered numerically; an export with a frame skip simply has fewer indices.
 """
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -95,15 +96,18 @@ class ExportedScan:
         size = encoded_image_size(data)
         if size != self.color_size:
             what = "not a JPEG or PNG image" if size is None else f"{size[0]}x{size[1]}"
-            raise UslError(f"{path}: colour frame is {what}, the scan's first frame is "
-                           f"{self.color_size[0]}x{self.color_size[1]}")
+            raise UslError(
+                f"{path}: colour frame is {what}, the scan's first frame is {self.color_size[0]}x{self.color_size[1]}"
+            )
         return data
 
     def color(self, index: int) -> np.ndarray:
         rgb = decode_color(self.color_encoded(index), self._color_files[index])
         if (rgb.shape[1], rgb.shape[0]) != self.color_size:
-            raise UslError(f"{self._color_files[index]}: decodes to {rgb.shape[1]}x{rgb.shape[0]}, "
-                           f"header says {self.color_size[0]}x{self.color_size[1]}")
+            raise UslError(
+                f"{self._color_files[index]}: decodes to {rgb.shape[1]}x{rgb.shape[0]}, "
+                f"header says {self.color_size[0]}x{self.color_size[1]}"
+            )
         return rgb
 
     def depth_raw(self, index: int) -> np.ndarray:

@@ -6,6 +6,7 @@ camera (same centre and orientation, its own intrinsics), so output pixel -> dep
 homography ``K_depth @ inv(K_out)``, with planar depth unchanged: one nearest-neighbour lookup table
 per scan, computed once with the project/unproject of ``usl.geometry.cameras``.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -21,7 +22,7 @@ from .scan import Calibration, Scan
 
 
 def pixel_centres(width: int, height: int) -> np.ndarray:
-    """(H*W, 2) continuous (u, v) of every pixel centre, row-major (DESIGN.md §2: +0.5)."""
+    """(H*W, 2) continuous (u, v) of every pixel centre, row-major (docs/design.md §2: +0.5)."""
     v, u = np.mgrid[0:height, 0:width]
     return np.stack([u.ravel() + 0.5, v.ravel() + 0.5], axis=1)
 
@@ -40,7 +41,7 @@ def centre_source_index(n_out: int, n_src: int) -> np.ndarray:
 
 
 def resample_nearest(image: np.ndarray, height: int, width: int) -> np.ndarray:
-    """Nearest-neighbour resize of a 2D array sampling at pixel centres (DESIGN.md §2)."""
+    """Nearest-neighbour resize of a 2D array sampling at pixel centres (docs/design.md §2)."""
     h, w = image.shape
     if (h, w) == (height, width):
         return image
@@ -61,8 +62,11 @@ class OutputGrid:
         cw, ch = calibration.color_size
         width, height = size if size is not None else (cw, ch)
         K = scale_intrinsics(torch.as_tensor(calibration.K_color), width / cw, height / ch).numpy()
-        rays = unproject(torch.as_tensor(pixel_centres(width, height)), torch.ones(width * height, dtype=torch.float64),
-                         torch.as_tensor(K))
+        rays = unproject(
+            torch.as_tensor(pixel_centres(width, height)),
+            torch.ones(width * height, dtype=torch.float64),
+            torch.as_tensor(K),
+        )
         uv_depth, _ = project(rays, torch.as_tensor(calibration.K_depth))
         dw, dh = calibration.depth_size
         return cls(width, height, K, (cw, ch), nearest_index(uv_depth.numpy(), dw, dh))

@@ -6,6 +6,7 @@ project's own detector. Each returns, per frame, ``Detection`` objects whose mas
 the colour image's pixel frame: any resolution covering the whole colour image, one size per scan
 (tracking compares masks at that resolution; records resample them to the output grid).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass

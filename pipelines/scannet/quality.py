@@ -1,4 +1,5 @@
 """Tracker quality against known identities (ScanNet's consistent instance ids, or synthetic truth)."""
+
 from __future__ import annotations
 
 from collections import Counter, defaultdict
@@ -14,8 +15,10 @@ class TrackingQuality:
     num_identities: int
 
     def describe(self) -> str:
-        return (f"purity {self.purity:.4f}, {self.id_switches} id switch(es), "
-                f"{self.num_tracks} track(s) for {self.num_identities} identit(ies)")
+        return (
+            f"purity {self.purity:.4f}, {self.id_switches} id switch(es), "
+            f"{self.num_tracks} track(s) for {self.num_identities} identit(ies)"
+        )
 
 
 def tracking_quality(observations: Iterable[tuple[int, int, int]]) -> TrackingQuality:

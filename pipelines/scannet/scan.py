@@ -1,9 +1,10 @@
 """What every ScanNet scan reader provides, whichever the storage (``.sens`` or exported folders).
 
 A reader is opened once per scan, reads one frame at a time on request, and never holds decoded
-frames: memory stays flat in scan length. Intrinsics are converted to DESIGN.md's pixel-centre
+frames: memory stays flat in scan length. Intrinsics are converted to docs/design.md's pixel-centre
 convention on reading (ScanNet, like OpenCV, puts pixel centres at integers: +0.5 shift).
 """
+
 from __future__ import annotations
 
 import struct

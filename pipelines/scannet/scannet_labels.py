@@ -8,6 +8,7 @@ An instance's label is the most common label under its mask, mapped to a dataset
 (with the aliases below for names COCO spells differently). The instance value becomes the
 detection's ``source_id``: the truth the IoU tracker is measured against, or the tracks themselves.
 """
+
 from __future__ import annotations
 
 import csv
@@ -110,8 +111,10 @@ class ScanLabels:
         if instance is None or label is None:
             return []
         if instance.shape != label.shape:
-            raise UslError(f"{self.instances.folder.parent}: frame {frame.index}: instance-filt "
-                           f"{instance.shape} and label-filt {label.shape} differ in size")
+            raise UslError(
+                f"{self.instances.folder.parent}: frame {frame.index}: instance-filt "
+                f"{instance.shape} and label-filt {label.shape} differ in size"
+            )
         detections = []
         for value in np.unique(instance):
             if value == 0:

@@ -4,6 +4,7 @@
 per frame, which also finds a truncated file before any work is done) and then reads each frame's
 payload with ``os.pread`` when asked: no mmap pages accumulate, memory stays flat in scan length.
 """
+
 from __future__ import annotations
 
 import os
@@ -45,8 +46,10 @@ class SensScan:
     def _read(self, offset: int, size: int, what: str) -> bytes:
         data = os.pread(self._fd, size, offset)
         if len(data) != size:
-            raise UslError(f"{self.path}: truncated .sens file: {what} needs bytes {offset}..{offset + size}, "
-                           f"file has {self._file_size}")
+            raise UslError(
+                f"{self.path}: truncated .sens file: {what} needs bytes {offset}..{offset + size}, "
+                f"file has {self._file_size}"
+            )
         return data
 
     def _read_header(self) -> int:
@@ -65,14 +68,20 @@ class SensScan:
         )
         offset += 36
         if color_codec not in (0, 1, 2):
-            raise UslError(f"{self.path}: colour compression {COLOR_CODECS.get(color_codec, color_codec)!r} "
-                           "is not supported (raw, png or jpeg)")
+            raise UslError(
+                f"{self.path}: colour compression {COLOR_CODECS.get(color_codec, color_codec)!r} "
+                "is not supported (raw, png or jpeg)"
+            )
         if depth_codec == 2:
-            raise UslError(f"{self.path}: depth uses the proprietary occi_ushort codec, which cannot be decoded; "
-                           "re-export the scan with zlib_ushort depth")
+            raise UslError(
+                f"{self.path}: depth uses the proprietary occi_ushort codec, which cannot be decoded; "
+                "re-export the scan with zlib_ushort depth"
+            )
         if depth_codec not in (0, 1):
-            raise UslError(f"{self.path}: depth compression {DEPTH_CODECS.get(depth_codec, depth_codec)!r} "
-                           "is not supported (raw_ushort or zlib_ushort)")
+            raise UslError(
+                f"{self.path}: depth compression {DEPTH_CODECS.get(depth_codec, depth_codec)!r} "
+                "is not supported (raw_ushort or zlib_ushort)"
+            )
         if not (np.isfinite(shift) and shift > 0):
             raise UslError(f"{self.path}: depth shift {shift} is not a positive number")
         check_aspect((cw, ch), (dw, dh), self.path)
@@ -101,8 +110,10 @@ class SensScan:
             payload = offset + FRAME_HEADER.size
             end = payload + color_bytes + depth_bytes
             if end > self._file_size:
-                raise UslError(f"{self.path}: truncated .sens file: frame {i} of {self.num_frames} needs bytes up to "
-                               f"{end}, file has {self._file_size}")
+                raise UslError(
+                    f"{self.path}: truncated .sens file: frame {i} of {self.num_frames} needs bytes up to "
+                    f"{end}, file has {self._file_size}"
+                )
             self._poses[i] = fields[:16]
             self._offsets[i] = payload
             self._sizes[i] = (color_bytes, depth_bytes)
@@ -129,8 +140,10 @@ class SensScan:
         if size is None:
             raise UslError(f"{self.path}: frame {index} colour payload is not a {self.color_codec} image")
         if size != self.color_size:
-            raise UslError(f"{self.path}: frame {index} colour is {size[0]}x{size[1]}, header says "
-                           f"{self.color_size[0]}x{self.color_size[1]} (colour/depth size mismatch)")
+            raise UslError(
+                f"{self.path}: frame {index} colour is {size[0]}x{size[1]}, header says "
+                f"{self.color_size[0]}x{self.color_size[1]} (colour/depth size mismatch)"
+            )
         return data
 
     def color(self, index: int) -> np.ndarray:
@@ -142,8 +155,9 @@ class SensScan:
             return np.frombuffer(data, np.uint8).reshape(h, w, 3)
         rgb = decode_color(self.color_encoded(index), f"{self.path} frame {index}")
         if rgb.shape[:2] != (h, w):
-            raise UslError(f"{self.path}: frame {index} colour decodes to {rgb.shape[1]}x{rgb.shape[0]}, "
-                           f"header says {w}x{h}")
+            raise UslError(
+                f"{self.path}: frame {index} colour decodes to {rgb.shape[1]}x{rgb.shape[0]}, header says {w}x{h}"
+            )
         return rgb
 
     def depth_raw(self, index: int) -> np.ndarray | None:
@@ -159,8 +173,10 @@ class SensScan:
                 raise UslError(f"{self.path}: frame {index} depth is not a valid zlib stream ({exc})") from None
         w, h = self.calibration.depth_size
         if len(data) != w * h * 2:
-            raise UslError(f"{self.path}: frame {index} depth holds {len(data)} bytes, a {w}x{h} uint16 image "
-                           f"needs {w * h * 2} (colour/depth size mismatch with the header)")
+            raise UslError(
+                f"{self.path}: frame {index} depth holds {len(data)} bytes, a {w}x{h} uint16 image "
+                f"needs {w * h * 2} (colour/depth size mismatch with the header)"
+            )
         return np.frombuffer(data, "<u2").reshape(h, w)
 
     def depth(self, index: int) -> np.ndarray | None:

@@ -6,6 +6,7 @@ analytically (no renderer needed): colour (textured, so JPEG is realistic), plan
 depth camera's resolution, and an instance map at colour resolution. The camera slides and turns
 along a path; chosen frames get ScanNet's ``-inf`` pose for lost tracking.
 """
+
 from __future__ import annotations
 
 import json
@@ -66,10 +67,19 @@ def integer_centres(K_half: np.ndarray) -> np.ndarray:
 class SyntheticScan:
     """``num_frames`` frames along a path: the camera slides along x from ``x_range`` looking across the room."""
 
-    def __init__(self, num_frames: int = 120, color_size: tuple[int, int] = (96, 72),
-                 depth_size: tuple[int, int] = (48, 36), boxes: tuple[Box, ...] = DEFAULT_BOXES,
-                 lost_frames: Iterable[int] = (), x_range: tuple[float, float] = (-1.2, 1.6), jpeg_quality: int = 90,
-                 period: int | None = None, render_scale: int = 1, depth_noise_mm: float = 0.0):
+    def __init__(
+        self,
+        num_frames: int = 120,
+        color_size: tuple[int, int] = (96, 72),
+        depth_size: tuple[int, int] = (48, 36),
+        boxes: tuple[Box, ...] = DEFAULT_BOXES,
+        lost_frames: Iterable[int] = (),
+        x_range: tuple[float, float] = (-1.2, 1.6),
+        jpeg_quality: int = 90,
+        period: int | None = None,
+        render_scale: int = 1,
+        depth_noise_mm: float = 0.0,
+    ):
         self.num_frames = num_frames
         self.color_size, self.depth_size = color_size, depth_size
         self.boxes = boxes
@@ -93,8 +103,9 @@ class SyntheticScan:
         eye = np.array([x, -2.6, 1.25 + 0.1 * np.sin(6 * s)])
         return look_at(eye, np.array([0.55 * x, 0.6, 0.5]), up=(0.0, 0.0, 1.0))
 
-    def _cast(self, pose: np.ndarray, K: np.ndarray,
-              size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _cast(
+        self, pose: np.ndarray, K: np.ndarray, size: tuple[int, int]
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Planar depth, instance id and world hit point of every pixel centre."""
         w, h = size
         v, u = np.mgrid[0:h, 0:w]
@@ -153,8 +164,16 @@ class SyntheticScan:
             yield self.render(index)
 
 
-def write_sens(path: Path, scan: SyntheticScan, frames: Iterable[SyntheticFrame], *, depth_codec: int = 1,
-               color_codec: int = 2, depth_shift: float = 1000.0, imu_records: int = 3) -> None:
+def write_sens(
+    path: Path,
+    scan: SyntheticScan,
+    frames: Iterable[SyntheticFrame],
+    *,
+    depth_codec: int = 1,
+    color_codec: int = 2,
+    depth_shift: float = 1000.0,
+    imu_records: int = 3,
+) -> None:
     """A ``.sens`` file (version 4) byte for byte as sensorData.h lays it out; frames are streamed."""
     cw, ch = scan.color_size
     dw, dh = scan.depth_size
@@ -210,8 +229,13 @@ def write_labels(root: Path, scan: SyntheticScan, frames: Iterable[SyntheticFram
 
 def write_label_map(path: Path) -> None:
     """A small scannetv2-labels.combined.tsv with the columns the converter reads."""
-    rows = [(1, "wall", "wall", "wall"), (2, "chair", "chair", "chair"), (6, "sofa", "couch", "sofa"),
-            (25, "tv", "tv", "television"), (40, "box", "box", "otherprop")]
+    rows = [
+        (1, "wall", "wall", "wall"),
+        (2, "chair", "chair", "chair"),
+        (6, "sofa", "couch", "sofa"),
+        (25, "tv", "tv", "television"),
+        (40, "box", "box", "otherprop"),
+    ]
     lines = ["id\traw_category\tcategory\tcount\tnyu40id\tnyu40class"]
     lines += [f"{i}\t{raw}\t{cat}\t1\t0\t{nyu}" for i, raw, cat, nyu in rows]
     path.write_text("\n".join(lines) + "\n")
@@ -227,14 +251,27 @@ def detections_from_instances(frame: SyntheticFrame, scan: SyntheticScan, rng: n
         mask = np.asfortranarray((frame.instances == value).astype(np.uint8))
         rle = mask_utils.encode(mask)
         x, y, w, h = mask_utils.toBbox(rle).tolist()
-        out.append({"category_id": coco[int(value)], "score": float(rng.uniform(0.6, 1.0)),
-                    "segmentation": {"size": rle["size"], "counts": rle["counts"].decode("ascii")},
-                    "bbox": [x, y, w, h], "true_instance": int(value)})
+        out.append(
+            {
+                "category_id": coco[int(value)],
+                "score": float(rng.uniform(0.6, 1.0)),
+                "segmentation": {"size": rle["size"], "counts": rle["counts"].decode("ascii")},
+                "bbox": [x, y, w, h],
+                "true_instance": int(value),
+            }
+        )
     return out
 
 
-def write_detections(results_path: Path, images_path: Path, scene_id: str, scan: SyntheticScan,
-                     frames: Iterable[SyntheticFrame], seed: int = 0, first_image_id: int = 1) -> None:
+def write_detections(
+    results_path: Path,
+    images_path: Path,
+    scene_id: str,
+    scan: SyntheticScan,
+    frames: Iterable[SyntheticFrame],
+    seed: int = 0,
+    first_image_id: int = 1,
+) -> None:
     """A detectron2-style results file and its COCO images file for the frames of one scan."""
     rng = np.random.default_rng(seed)
     images, results = [], []

@@ -7,6 +7,7 @@ frames without a match. When a warp is given, a track's last mask is also compar
 into the current frame (depth + relative pose), and the better of the two IoUs counts.
 Tracks with at least ``min_track_frames`` observations become objects.
 """
+
 from __future__ import annotations
 
 from collections import defaultdict
@@ -105,9 +106,7 @@ class IouTracker:
             iou = np.where(same.reshape(iou.shape), iou, 0.0)
         cost = np.where(iou >= self.config.iou_threshold, 1.0 - iou, FORBIDDEN)
         rows, cols = linear_sum_assignment(cost) if cost.size else (np.zeros(0, int), np.zeros(0, int))
-        assigned: dict[int, Track] = {
-            int(r): active[int(c)] for r, c in zip(rows, cols) if cost[r, c] < FORBIDDEN
-        }
+        assigned: dict[int, Track] = {int(r): active[int(c)] for r, c in zip(rows, cols) if cost[r, c] < FORBIDDEN}
         ids = []
         for k, det in enumerate(detections):
             track = assigned.get(k)

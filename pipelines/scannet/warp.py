@@ -8,6 +8,7 @@ was visible there too. Pixels without a usable correspondence are reported as no
 the tracker compares masks only where the warp is defined. Matching needs no fine detail, so the
 warp runs on a grid of at most ``max_side`` pixels a side (masks are resampled to it and back).
 """
+
 from __future__ import annotations
 
 import numpy as np

@@ -1,6 +1,6 @@
 """Scene-Shapes (paper Sec. 4.1, Appendix B): pairs of chairs, sofas and tables seen from an orbit.
 
-``usl-build-scene-shapes --out DIR`` writes the records of DESIGN.md §3 (frames with RGB, depth
+``usl-build-scene-shapes --out DIR`` writes the records of docs/design.md §3 (frames with RGB, depth
 and instance masks; objects with the ground-truth meshes). Modules:
 
 - ``primitives``, ``chairs``, ``sofas``, ``tables``, ``shapes``: procedural furniture (5 chair,

@@ -3,6 +3,7 @@
 Dimensions follow common furniture standards: dining/office seat heights 0.42-0.50 m,
 upholstered armchairs 0.40-0.47 m, counter/bar stools 0.60-0.78 m.
 """
+
 from __future__ import annotations
 
 from typing import Callable
@@ -28,8 +29,9 @@ from .primitives import (
 Rng = np.random.Generator
 
 
-def _chair_back(rng: Rng, width: float, seat_top: float, back_height: float, z_rear: float, lean: float,
-                post: float) -> list[Part]:
+def _chair_back(
+    rng: Rng, width: float, seat_top: float, back_height: float, z_rear: float, lean: float, post: float
+) -> list[Part]:
     """Back of a framed chair: two leaning posts with a panel, vertical slats or ladder rails."""
     top_y = seat_top + back_height
     z_top = z_rear - back_height * np.tan(lean)
@@ -71,19 +73,24 @@ def four_legged(rng: Rng) -> list[Part]:
     leg = rng.uniform(0.025, 0.05)
     splay = rng.uniform(0.0, 0.04)
     under = seat_top - seat_t
-    parts = [rounded_slab_y(width, depth, seat_t, [0.0, under + 0.5 * seat_t, 0.0], BODY,
-                            roundness=rng.uniform(0.0, 0.35))]
+    parts = [
+        rounded_slab_y(width, depth, seat_t, [0.0, under + 0.5 * seat_t, 0.0], BODY, roundness=rng.uniform(0.0, 0.35))
+    ]
     x, z = 0.5 * width - 0.5 * leg - 0.01, 0.5 * depth - 0.5 * leg - 0.01
     for sz in (-1.0, 1.0):
-        leg_part = rod([x, under, sz * z], [x + splay, 0.0, sz * (z + splay)], 0.5 * leg,
-                       sections=4 if rng.random() < 0.5 else 12)
+        leg_part = rod(
+            [x, under, sz * z], [x + splay, 0.0, sz * (z + splay)], 0.5 * leg, sections=4 if rng.random() < 0.5 else 12
+        )
         parts += [leg_part, mirrored_x(leg_part)]
     if rng.random() < 0.5:
         y = rng.uniform(0.10, 0.22)
         frac = y / under  # legs splay linearly, so follow them at this height
         xs, zs = x + splay * (1 - frac), z + splay * (1 - frac)
-        parts += [rod([-xs, y, zs], [-xs, y, -zs], 0.011), rod([xs, y, zs], [xs, y, -zs], 0.011),
-                  rod([-xs, y, 0.0], [xs, y, 0.0], 0.011)]
+        parts += [
+            rod([-xs, y, zs], [-xs, y, -zs], 0.011),
+            rod([xs, y, zs], [xs, y, -zs], 0.011),
+            rod([-xs, y, 0.0], [xs, y, 0.0], 0.011),
+        ]
     back_h, lean = rng.uniform(0.35, 0.55), rng.uniform(0.0, 0.25)
     parts += _chair_back(rng, width, seat_top, back_h, -0.5 * depth + 0.5 * leg + 0.005, lean, leg)
     return parts
@@ -107,8 +114,11 @@ def swivel(rng: Rng) -> list[Part]:
     hub_r = rng.uniform(0.04, 0.06)
     parts.append(cylinder_y(hub_r, arm_h + 0.03, [0.0, arm_y, 0.0]))
     column_bottom, column_top = arm_y + 0.015, seat_top - seat_t - 0.04
-    parts.append(cylinder_y(rng.uniform(0.022, 0.035), column_top - column_bottom,
-                            [0.0, 0.5 * (column_bottom + column_top), 0.0]))
+    parts.append(
+        cylinder_y(
+            rng.uniform(0.022, 0.035), column_top - column_bottom, [0.0, 0.5 * (column_bottom + column_top), 0.0]
+        )
+    )
     parts.append(box([0.2, 0.04, 0.2], [0.0, column_top + 0.02, 0.0], FRAME))
     back_h, lean = rng.uniform(0.40, 0.70), rng.uniform(0.08, 0.25)
     back_t = rng.uniform(0.05, 0.08)
@@ -116,8 +126,11 @@ def swivel(rng: Rng) -> list[Part]:
     back_w = width * rng.uniform(0.8, 1.0)
     z_back = -0.5 * depth - 0.5 * back_t
     y_mid = seat_top + gap + 0.5 * back_h
-    parts.append(rounded_box([back_w, back_h, back_t], [0.0, y_mid, z_back - (y_mid - seat_top) * np.tan(lean)],
-                             0.025, pitch=-lean))
+    parts.append(
+        rounded_box(
+            [back_w, back_h, back_t], [0.0, y_mid, z_back - (y_mid - seat_top) * np.tan(lean)], 0.025, pitch=-lean
+        )
+    )
     parts.append(box([0.05, gap + 0.2, 0.025], [0.0, seat_top - seat_t + 0.5 * (gap + 0.2), z_back], FRAME))
     if rng.random() < 0.6:
         x = 0.5 * width + 0.02
@@ -137,19 +150,27 @@ def armchair(rng: Rng) -> list[Part]:
     leg_h = rng.choice([0.0, rng.uniform(0.06, 0.16)])
     soft = rng.uniform(0.015, 0.06)
     base_top = seat_top - cushion
-    parts = [rounded_box([width - 2 * arm_w, base_top - leg_h, depth - back_t],
-                         [0.0, 0.5 * (base_top + leg_h), 0.5 * back_t], soft)]
-    parts.append(rounded_box([width - 2 * arm_w - 0.01, cushion, depth - back_t - 0.01],
-                             [0.0, base_top + 0.5 * cushion, 0.5 * back_t], soft))
+    parts = [
+        rounded_box(
+            [width - 2 * arm_w, base_top - leg_h, depth - back_t], [0.0, 0.5 * (base_top + leg_h), 0.5 * back_t], soft
+        )
+    ]
+    parts.append(
+        rounded_box(
+            [width - 2 * arm_w - 0.01, cushion, depth - back_t - 0.01],
+            [0.0, base_top + 0.5 * cushion, 0.5 * back_t],
+            soft,
+        )
+    )
     arm = rounded_box([arm_w, arm_top - leg_h, depth], [0.5 * (width - arm_w), 0.5 * (arm_top + leg_h), 0.0], soft)
     parts += [arm, mirrored_x(arm)]
-    parts.append(rounded_box([width, back_top - leg_h, back_t], [0.0, 0.5 * (back_top + leg_h), -0.5 * (depth - back_t)],
-                             soft))
+    parts.append(
+        rounded_box([width, back_top - leg_h, back_t], [0.0, 0.5 * (back_top + leg_h), -0.5 * (depth - back_t)], soft)
+    )
     if leg_h > 0:
         leg_r = rng.uniform(0.018, 0.03)
         for sz in (-1.0, 1.0):
-            leg = cylinder_y(leg_r, leg_h, [0.5 * width - 0.05, 0.5 * leg_h, sz * (0.5 * depth - 0.05)],
-                             sections=16)
+            leg = cylinder_y(leg_r, leg_h, [0.5 * width - 0.05, 0.5 * leg_h, sz * (0.5 * depth - 0.05)], sections=16)
             parts += [leg, mirrored_x(leg)]
     return parts
 
@@ -193,8 +214,13 @@ def cantilever(rng: Rng) -> list[Part]:
     z_rear = -0.5 * depth + 0.02
     y_under = seat_top - 0.03 - radius
     x = 0.5 * width - radius
-    path = [[x, radius, z_floor_back], [x, radius, z_front], [x, y_under, z_front - 0.03],
-            [x, y_under, z_rear], [x, seat_top + back_h, z_rear - back_h * np.tan(lean)]]
+    path = [
+        [x, radius, z_floor_back],
+        [x, radius, z_front],
+        [x, y_under, z_front - 0.03],
+        [x, y_under, z_rear],
+        [x, seat_top + back_h, z_rear - back_h * np.tan(lean)],
+    ]
     parts: list[Part] = []
     for start, end in zip(path[:-1], path[1:]):
         segment = tube(start, end, radius)
@@ -203,8 +229,11 @@ def cantilever(rng: Rng) -> list[Part]:
     parts.append(rounded_box([width - 0.02, 0.03, depth - 0.02], [0.0, seat_top - 0.015, 0.0], 0.012))
     pad_h = back_h * rng.uniform(0.45, 0.8)
     y_mid = seat_top + back_h - 0.5 * pad_h
-    parts.append(rounded_box([width - 0.02, pad_h, 0.025], [0.0, y_mid, z_rear - (y_mid - seat_top) * np.tan(lean)],
-                             0.01, pitch=-lean))
+    parts.append(
+        rounded_box(
+            [width - 0.02, pad_h, 0.025], [0.0, y_mid, z_rear - (y_mid - seat_top) * np.tan(lean)], 0.01, pitch=-lean
+        )
+    )
     return parts
 
 

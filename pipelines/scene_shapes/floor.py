@@ -6,6 +6,7 @@ The floor never occludes an object (objects stand on it), so compositing it behi
 layer is exact. Shading follows pyrender's shader for a matte surface: Lambert diffuse with
 albedo (1 - 0.04) / pi per directional light, plus ambient, then gamma 1/2.2.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -31,15 +32,17 @@ class FloorLook:
 
 
 def sample_floor(rng: np.random.Generator, albedo: np.ndarray) -> FloorLook:
-    return FloorLook(np.asarray(albedo, dtype=np.float64), rng.uniform(0.25, 1.0), rng.uniform(0.0, 0.3),
-                     rng.uniform(0.0, np.pi / 2))
+    return FloorLook(
+        np.asarray(albedo, dtype=np.float64), rng.uniform(0.25, 1.0), rng.uniform(0.0, 0.3), rng.uniform(0.0, np.pi / 2)
+    )
 
 
 class FloorRenderer:
     """The floor of one scene seen through one camera model (K, size) from any pose."""
 
-    def __init__(self, look: FloorLook, lights: list[Light], ambient: np.ndarray, K: np.ndarray, height: int,
-                 width: int):
+    def __init__(
+        self, look: FloorLook, lights: list[Light], ambient: np.ndarray, K: np.ndarray, height: int, width: int
+    ):
         import torch  # not at import: the CLI's --help must not load torch
 
         from usl.geometry.cameras import unproject
@@ -71,7 +74,10 @@ class FloorRenderer:
     def colour(self, depth: np.ndarray, points: np.ndarray) -> np.ndarray:
         """Display-space RGB in [0, 1] of the floor at each pixel (meaningless where depth is 0)."""
         look = self.look
-        c, s = np.float32(np.cos(look.tile_angle) / look.tile_size), np.float32(np.sin(look.tile_angle) / look.tile_size)
+        c, s = (
+            np.float32(np.cos(look.tile_angle) / look.tile_size),
+            np.float32(np.sin(look.tile_angle) / look.tile_size),
+        )
         x, z = points[..., 0], points[..., 1]
         checker = (np.floor(c * x - s * z) + np.floor(s * x + c * z)) % 2 - np.float32(0.5)
         # Fade the tiling where a pixel covers a sizeable part of a tile, instead of aliasing.

@@ -13,6 +13,7 @@ h_t = ``target_height``. Views are a grid of ``heights`` camera heights x ``azim
 the lowest height); azimuths are evenly spaced with a small per-scene random jitter (never on
 azimuth 0, which defines the world frame).
 """
+
 from __future__ import annotations
 
 import math
@@ -97,8 +98,9 @@ def orbit_poses(rig: RigConfig, placement: PlacementConfig, rng: np.random.Gener
     return poses
 
 
-def sample_layout(rng: np.random.Generator, pools: dict[str, list[ModelRef]], rig: RigConfig,
-                  placement: PlacementConfig) -> SceneLayout:
+def sample_layout(
+    rng: np.random.Generator, pools: dict[str, list[ModelRef]], rig: RigConfig, placement: PlacementConfig
+) -> SceneLayout:
     """Pick the objects (a uniformly chosen category each, then a model of it), their yaws and
     positions, and the camera orbit of one scene.
 

@@ -12,6 +12,7 @@ Normalisation, applied in this order (documented in the CLI help):
    map file), which suits unit-normalised sets such as ShapeNet; "none" keeps metric meshes as is;
 3. grounding: lowest point on y = 0, bounding box centred on x = z = 0.
 """
+
 from __future__ import annotations
 
 import json
@@ -89,16 +90,18 @@ def load_category_map(path: Path) -> CategoryMap:
             raise UslError(f"{path}: target_diagonal_m[{category}] must be positive")
     for folder, category in folders.items():
         if category not in CATEGORIES:
-            raise UslError(f"{path}: folder {folder!r} maps to unknown category {category!r} "
-                           f"(known: {', '.join(CATEGORIES)})")
+            raise UslError(
+                f"{path}: folder {folder!r} maps to unknown category {category!r} (known: {', '.join(CATEGORIES)})"
+            )
     unknown = set(diagonals) - set(CATEGORIES)
     if unknown:
         raise UslError(f"{path}: target_diagonal_m names unknown categories {sorted(unknown)}")
     return CategoryMap({str(k): str(v) for k, v in folders.items()}, diagonals)
 
 
-def discover_models(root: Path, category_map: CategoryMap, empty_is_error: bool = True
-                    ) -> tuple[list[ModelRef], list[str]]:
+def discover_models(
+    root: Path, category_map: CategoryMap, empty_is_error: bool = True
+) -> tuple[list[ModelRef], list[str]]:
     """All mesh files under the mapped folders of ``root``, sorted; and the unmapped folder names.
 
     Empty (0-byte) files fail here, before any rendering, unless ``empty_is_error`` is False; then
@@ -152,8 +155,9 @@ def load_mesh_model(ref: ModelRef, normalisation: MeshNormalisation) -> ShapeMod
         if diagonal <= 0:
             raise UslError(f"{ref.path}: mesh is degenerate (zero-size bounding box)")
         vertices = vertices * (dict(normalisation.diagonals)[ref.category] / diagonal)
-    model = ShapeModel(ref.source_id, ref.category, ground(vertices), faces,
-                       np.full(len(vertices), BODY, dtype=np.uint8))
+    model = ShapeModel(
+        ref.source_id, ref.category, ground(vertices), faces, np.full(len(vertices), BODY, dtype=np.uint8)
+    )
     for array in (model.vertices, model.faces, model.vertex_roles):
         array.flags.writeable = False
     return model
@@ -161,5 +165,4 @@ def load_mesh_model(ref: ModelRef, normalisation: MeshNormalisation) -> ShapeMod
 
 def dump_category_map(category_map: CategoryMap) -> str:
     """Canonical JSON of a map, for the dataset fingerprint."""
-    return json.dumps({"categories": category_map.folders, "target_diagonal_m": category_map.diagonals},
-                      sort_keys=True)
+    return json.dumps({"categories": category_map.folders, "target_diagonal_m": category_map.diagonals}, sort_keys=True)

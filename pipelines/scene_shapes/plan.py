@@ -3,6 +3,7 @@
 Everything here is a function of the build arguments (``--seed`` included) and never of the
 worker count: each scene's randomness is seeded from (seed, split, scene index).
 """
+
 from __future__ import annotations
 
 import math
@@ -54,7 +55,7 @@ def split_models(refs: list[ModelRef], fractions: list[tuple[str, float]], seed:
         order = np.random.default_rng(np.random.SeedSequence([seed, _MODEL_STREAM, c])).permutation(len(pool))
         start = 0
         for (name, _), count in zip(fractions, split_counts(len(pool), [f for _, f in fractions])):
-            splits[name] += [pool[i] for i in order[start:start + count]]
+            splits[name] += [pool[i] for i in order[start : start + count]]
             start += count
     return splits
 
@@ -67,8 +68,10 @@ def plan_shards(refs: list[ModelRef], plan: PlanConfig, scene_config: SceneConfi
     shards: list[ShardPlan] = []
     for s, (name, count) in enumerate(zip(names, scene_counts)):
         if count and not models[name]:
-            raise UslError(f"split {name!r} has {count} scenes but no models; use more models "
-                           f"(--num-models, or more meshes under --mesh-root)")
+            raise UslError(
+                f"split {name!r} has {count} scenes but no models; use more models "
+                f"(--num-models, or more meshes under --mesh-root)"
+            )
         pools = {c: [r for r in models[name] if r.category == c] for c in CATEGORIES}
         units = []
         for i in range(count):
@@ -76,5 +79,5 @@ def plan_shards(refs: list[ModelRef], plan: PlanConfig, scene_config: SceneConfi
             layout = sample_layout(rng, pools, scene_config.rig, plan.placement)
             units.append(SceneUnit(f"{name}-{i:06d}", layout, int(rng.integers(2**63)), scene_config))
         for k in range(0, count, plan.scenes_per_shard):
-            shards.append(ShardPlan(name, k // plan.scenes_per_shard, units[k:k + plan.scenes_per_shard]))
+            shards.append(ShardPlan(name, k // plan.scenes_per_shard, units[k : k + plan.scenes_per_shard]))
     return shards

@@ -5,6 +5,7 @@ creation functions and convex hulls guarantee it), so a model built as a concate
 parts is closed part by part. Parts carry a ``role`` so the renderer can give upholstery and
 frame different materials, as real furniture has.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -42,15 +43,15 @@ def _rotated(mesh: trimesh.Trimesh, yaw: float, pitch: float) -> trimesh.Trimesh
     return mesh
 
 
-def box(size: Sequence[float], center: Sequence[float], role: int = BODY, yaw: float = 0.0,
-        pitch: float = 0.0) -> Part:
+def box(size: Sequence[float], center: Sequence[float], role: int = BODY, yaw: float = 0.0, pitch: float = 0.0) -> Part:
     """Box of ``size`` (x, y, z) at ``center``, optionally pitched and yawed about its own centre."""
     mesh = creation.box(extents=np.asarray(size, dtype=np.float64))
     return Part(_moved(_rotated(mesh, yaw, pitch), center), role)
 
 
-def rounded_box(size: Sequence[float], center: Sequence[float], radius: float, role: int = BODY,
-                pitch: float = 0.0) -> Part:
+def rounded_box(
+    size: Sequence[float], center: Sequence[float], radius: float, role: int = BODY, pitch: float = 0.0
+) -> Part:
     """Box with edges rounded by ``radius``: the convex hull of eight corner spheres (cushions)."""
     size = np.asarray(size, dtype=np.float64)
     radius = float(min(radius, 0.49 * size.min()))
@@ -61,15 +62,24 @@ def rounded_box(size: Sequence[float], center: Sequence[float], radius: float, r
     return Part(_moved(_rotated(trimesh.convex.convex_hull(points), 0.0, pitch), center), role)
 
 
-def cylinder_y(radius: float, height: float, center: Sequence[float], role: int = FRAME,
-               sections: int = ROUND_SECTIONS) -> Part:
+def cylinder_y(
+    radius: float, height: float, center: Sequence[float], role: int = FRAME, sections: int = ROUND_SECTIONS
+) -> Part:
     """Vertical cylinder (axis +Y) of ``height`` centred at ``center``."""
-    return Part(_moved(creation.cylinder(radius=radius, height=height, sections=sections).apply_transform(
-        trimesh.transformations.rotation_matrix(np.pi / 2, [1.0, 0.0, 0.0])), center), role)
+    return Part(
+        _moved(
+            creation.cylinder(radius=radius, height=height, sections=sections).apply_transform(
+                trimesh.transformations.rotation_matrix(np.pi / 2, [1.0, 0.0, 0.0])
+            ),
+            center,
+        ),
+        role,
+    )
 
 
-def rod(start: Sequence[float], end: Sequence[float], radius: float, role: int = FRAME,
-        sections: int = THIN_SECTIONS) -> Part:
+def rod(
+    start: Sequence[float], end: Sequence[float], radius: float, role: int = FRAME, sections: int = THIN_SECTIONS
+) -> Part:
     """Cylinder between two points (splayed legs, stretchers, rails)."""
     segment = np.asarray([start, end], dtype=np.float64)
     return Part(creation.cylinder(radius=radius, segment=segment, sections=sections), role)
@@ -90,8 +100,9 @@ def disk_cone(bottom_radius: float, top_radius: float, height: float, base_y: fl
     """Truncated cone standing on ``base_y`` (pedestal feet, flared bases): a convex hull of two rings."""
     angles = np.linspace(0.0, 2 * np.pi, ROUND_SECTIONS, endpoint=False)
     ring = np.stack([np.cos(angles), np.zeros_like(angles), np.sin(angles)], axis=1)
-    points = np.concatenate([ring * bottom_radius + [0.0, base_y, 0.0],
-                             ring * top_radius + [0.0, base_y + height, 0.0]])
+    points = np.concatenate(
+        [ring * bottom_radius + [0.0, base_y, 0.0], ring * top_radius + [0.0, base_y + height, 0.0]]
+    )
     return Part(trimesh.convex.convex_hull(points), role)
 
 
@@ -102,8 +113,9 @@ def ring_y(outer: float, inner: float, height: float, center: Sequence[float], r
     return Part(_moved(mesh, center), role)
 
 
-def rounded_slab_y(width: float, depth: float, thickness: float, center: Sequence[float], role: int = BODY,
-                   roundness: float = 1.0) -> Part:
+def rounded_slab_y(
+    width: float, depth: float, thickness: float, center: Sequence[float], role: int = BODY, roundness: float = 1.0
+) -> Part:
     """Horizontal slab whose outline is a superellipse: ``roundness`` 1 = ellipse, 0 -> rectangle.
 
     Gives oval and soft-cornered table tops and seats from one continuous parameter.

@@ -7,6 +7,7 @@ both come from the segmentation pass, so a pixel belongs to the nearest object a
 depth always agree. The background (a plain colour, optionally with the analytic floor of
 ``floor.py``) is composited behind the anti-aliased object layer.
 """
+
 from __future__ import annotations
 
 import colorsys
@@ -35,8 +36,10 @@ Z_NEAR, Z_FAR = 0.05, 30.0
 BACKGROUNDS = ("plain", "floor")
 _RENDERERS: dict[tuple[int, int], pyrender.OffscreenRenderer] = {}
 
-EGL_HELP = ("offscreen rendering failed ({error}); install libegl1 and libgl1-mesa-dri "
-            "(Debian/Ubuntu) and set PYOPENGL_PLATFORM=egl")
+EGL_HELP = (
+    "offscreen rendering failed ({error}); install libegl1 and libgl1-mesa-dri "
+    "(Debian/Ubuntu) and set PYOPENGL_PLATFORM=egl"
+)
 
 
 def _egl_error(exc: BaseException) -> UslError:
@@ -95,9 +98,11 @@ def _material(rng: np.random.Generator, role: int) -> pyrender.MetallicRoughness
     """Upholstery/tops: matte to satin; frames: wood-like or metallic."""
     pyrender = _pyrender()
     metallic = rng.uniform(0.0, 0.1) if role == BODY else rng.choice([rng.uniform(0.0, 0.1), rng.uniform(0.6, 0.9)])
-    return pyrender.MetallicRoughnessMaterial(baseColorFactor=[*_random_color(rng, (0.15, 0.95)), 1.0],
-                                              metallicFactor=float(metallic),
-                                              roughnessFactor=float(rng.uniform(0.3, 1.0)))
+    return pyrender.MetallicRoughnessMaterial(
+        baseColorFactor=[*_random_color(rng, (0.15, 0.95)), 1.0],
+        metallicFactor=float(metallic),
+        roughnessFactor=float(rng.uniform(0.3, 1.0)),
+    )
 
 
 def _object_mesh(model: ShapeModel, rng: np.random.Generator) -> pyrender.Mesh:
@@ -118,8 +123,9 @@ def _sample_lights(rng: np.random.Generator) -> list[Light]:
     lights = []
     for intensity in (rng.uniform(2.0, 5.0), rng.uniform(0.3, 1.5)):
         elevation, azimuth = rng.uniform(np.radians(25), np.radians(85)), rng.uniform(0, 2 * np.pi)
-        direction = -np.array([np.cos(elevation) * np.sin(azimuth), np.sin(elevation),
-                               np.cos(elevation) * np.cos(azimuth)])
+        direction = -np.array(
+            [np.cos(elevation) * np.sin(azimuth), np.sin(elevation), np.cos(elevation) * np.cos(azimuth)]
+        )
         lights.append(Light(direction, intensity * (1.0 - rng.uniform(0.0, 0.15, size=3))))
     return lights
 
@@ -134,8 +140,14 @@ def _light_node_pose(direction: np.ndarray) -> np.ndarray:
     return pose
 
 
-def render_scene(objects: list[PlacedModel], K: np.ndarray, cam_to_world: list[np.ndarray], resolution: int,
-                 background: str, rng: np.random.Generator) -> list[ViewImages]:
+def render_scene(
+    objects: list[PlacedModel],
+    K: np.ndarray,
+    cam_to_world: list[np.ndarray],
+    resolution: int,
+    background: str,
+    rng: np.random.Generator,
+) -> list[ViewImages]:
     """Render every view of a scene; ``rng`` drives materials, lights and background only."""
     if K[0, 1] != 0.0 or K[1, 0] != 0.0 or np.any(K[2] != [0.0, 0.0, 1.0]):
         raise ValueError("pyrender cameras need a K without skew and a last row [0, 0, 1]")
@@ -150,15 +162,20 @@ def render_scene(objects: list[PlacedModel], K: np.ndarray, cam_to_world: list[n
         seg_map[scene.add(_object_mesh(placed.model, rng), pose=placed.world_from_object)] = [k, 0, 0]
     lights = _sample_lights(rng)
     for light in lights:
-        scene.add(pyrender.DirectionalLight(color=light.radiance / light.radiance.max(),
-                                            intensity=float(light.radiance.max())), pose=_light_node_pose(light.direction))
+        scene.add(
+            pyrender.DirectionalLight(
+                color=light.radiance / light.radiance.max(), intensity=float(light.radiance.max())
+            ),
+            pose=_light_node_pose(light.direction),
+        )
     sky = (_random_color(rng, (0.2, 1.0)) ** (1.0 / 2.2)).astype(np.float32)
     floor = None
     if background == "floor":
         look = sample_floor(rng, _random_color(rng, (0.2, 0.9)))
         floor = FloorRenderer(look, lights, ambient, K, resolution, resolution)
-    camera_node = scene.add(pyrender.IntrinsicsCamera(fx=K[0, 0], fy=K[1, 1], cx=K[0, 2], cy=K[1, 2],
-                                                      znear=Z_NEAR, zfar=Z_FAR))
+    camera_node = scene.add(
+        pyrender.IntrinsicsCamera(fx=K[0, 0], fy=K[1, 1], cx=K[0, 2], cy=K[1, 2], znear=Z_NEAR, zfar=Z_FAR)
+    )
     from usl.geometry.cameras import opencv_to_opengl_camera  # torch: not at import (fast --help)
 
     opencv_to_opengl = opencv_to_opengl_camera().numpy()
@@ -176,8 +193,9 @@ def render_scene(objects: list[PlacedModel], K: np.ndarray, cam_to_world: list[n
             # The object layer is premultiplied by its coverage (transparent background, MSAA resolve).
             alpha = rgba[..., 3:4].astype(np.float32) * np.float32(1.0 / 255.0)
             rgb = rgba[..., :3] + (1.0 - alpha) * np.float32(255.0) * back + np.float32(0.5)
-            views.append(ViewImages(np.clip(rgb, 0, 255).astype(np.uint8), depth.astype(np.float32),
-                                    seg[..., 0].copy()))
+            views.append(
+                ViewImages(np.clip(rgb, 0, 255).astype(np.uint8), depth.astype(np.float32), seg[..., 0].copy())
+            )
     except GLError as exc:
         raise _egl_error(exc) from exc
     return views

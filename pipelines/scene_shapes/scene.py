@@ -4,6 +4,7 @@
 all randomness comes from the unit (layout sampled by the planner, appearance seed), so the
 output does not depend on which worker builds it.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -64,11 +65,18 @@ def build_scene(unit: SceneUnit) -> SceneRecord:
             if not config.skip_bad_meshes:
                 raise
             # The scene is left out and the manifest says which mesh and why.
-            return SceneRecord(unit.scene_id, [], skips=[Skip(f"scene left out, unreadable mesh: {exc}",
-                                                              placement.model.source_id)])
+            return SceneRecord(
+                unit.scene_id, [], skips=[Skip(f"scene left out, unreadable mesh: {exc}", placement.model.source_id)]
+            )
     transforms = [p.world_from_object() for p in layout.objects]
-    views = render_scene([PlacedModel(m, t) for m, t in zip(models, transforms)], layout.K, list(layout.cam_to_world),
-                         config.rig.resolution, config.background, np.random.default_rng(unit.appearance_seed))
+    views = render_scene(
+        [PlacedModel(m, t) for m, t in zip(models, transforms)],
+        layout.K,
+        list(layout.cam_to_world),
+        config.rig.resolution,
+        config.background,
+        np.random.default_rng(unit.appearance_seed),
+    )
     size = config.rig.resolution
     frames = []
     for view_id, (view, pose) in enumerate(zip(views, layout.cam_to_world)):
@@ -76,11 +84,31 @@ def build_scene(unit: SceneUnit) -> SceneRecord:
         for index, placement in enumerate(layout.objects, start=1):
             mask = view.instance_index == index
             if mask.any():  # wholly occluded objects are absent from this view
-                instances.append(make_instance(placement.instance_id, category_ids[placement.model.category],
-                                               mask, view.depth))
-        frames.append(frame_row(unit.scene_id, view_id, encode_image(view.rgb, config.image_codec), layout.K, pose,
-                                instances, size, size, encode_depth(view.depth)))
-    objects = [object_row(unit.scene_id, p.instance_id, category_ids[p.model.category], p.model.source_id,
-                          transform_vertices(m.vertices, t), m.faces)
-               for p, m, t in zip(layout.objects, models, transforms)]
+                instances.append(
+                    make_instance(placement.instance_id, category_ids[placement.model.category], mask, view.depth)
+                )
+        frames.append(
+            frame_row(
+                unit.scene_id,
+                view_id,
+                encode_image(view.rgb, config.image_codec),
+                layout.K,
+                pose,
+                instances,
+                size,
+                size,
+                encode_depth(view.depth),
+            )
+        )
+    objects = [
+        object_row(
+            unit.scene_id,
+            p.instance_id,
+            category_ids[p.model.category],
+            p.model.source_id,
+            transform_vertices(m.vertices, t),
+            m.faces,
+        )
+        for p, m, t in zip(layout.objects, models, transforms)
+    ]
     return SceneRecord(unit.scene_id, frames, objects)

@@ -5,6 +5,7 @@ the index seeds the family's parameters, so anyone can regenerate the exact mesh
 dataset from the id alone. Every model is grounded the same way: +Y up, lowest point at y = 0,
 bounding box centred on x = z = 0, metres.
 """
+
 from __future__ import annotations
 
 import hashlib
@@ -70,8 +71,9 @@ def assemble(source_id: str, category: str, parts: list[Part]) -> ShapeModel:
         faces.append(np.asarray(part.mesh.faces, dtype=np.int64) + offset)
         roles.append(np.full(len(part.mesh.vertices), part.role, dtype=np.uint8))
         offset += len(part.mesh.vertices)
-    model = ShapeModel(source_id, category, ground(np.concatenate(vertices)), np.concatenate(faces),
-                       np.concatenate(roles))
+    model = ShapeModel(
+        source_id, category, ground(np.concatenate(vertices)), np.concatenate(faces), np.concatenate(roles)
+    )
     for array in (model.vertices, model.faces, model.vertex_roles):
         array.flags.writeable = False  # models are cached and shared; transform copies instead
     return model
@@ -97,10 +99,14 @@ def procedural_refs(num_models: int, categories: tuple[str, ...] = CATEGORIES) -
 
 def _parse_procedural(source_id: str) -> tuple[str, str, int]:
     parts = source_id.split("/")
-    if len(parts) != 4 or parts[0] != PROCEDURAL_PREFIX or parts[1] not in FAMILIES \
-            or parts[2] not in FAMILIES[parts[1]] or not parts[3].isdigit():
-        raise UslError(f"{source_id!r} is not a procedural model id "
-                       f"({PROCEDURAL_PREFIX}/<category>/<family>/<index>)")
+    if (
+        len(parts) != 4
+        or parts[0] != PROCEDURAL_PREFIX
+        or parts[1] not in FAMILIES
+        or parts[2] not in FAMILIES[parts[1]]
+        or not parts[3].isdigit()
+    ):
+        raise UslError(f"{source_id!r} is not a procedural model id ({PROCEDURAL_PREFIX}/<category>/<family>/<index>)")
     return parts[1], parts[2], int(parts[3])
 
 

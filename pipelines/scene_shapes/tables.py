@@ -3,6 +3,7 @@
 Heights: dining, round, pedestal, trestle and desk tables 0.70-0.78 m; coffee tables 0.38-0.48 m.
 Tops stay within 1.6 m so a pair of objects fits in view at the paper's 1.5-1.9 m distances.
 """
+
 from __future__ import annotations
 
 from typing import Callable
@@ -47,10 +48,12 @@ def _corner_legs(rng: Rng, x: float, z: float, under: float, splay: float = 0.0)
 
 def _apron(x: float, z: float, under: float, height: float) -> list[Part]:
     """Rails under the top joining the legs."""
-    return [box([2 * x, height, 0.02], [0.0, under - 0.5 * height, z], FRAME),
-            box([2 * x, height, 0.02], [0.0, under - 0.5 * height, -z], FRAME),
-            box([0.02, height, 2 * z], [x, under - 0.5 * height, 0.0], FRAME),
-            box([0.02, height, 2 * z], [-x, under - 0.5 * height, 0.0], FRAME)]
+    return [
+        box([2 * x, height, 0.02], [0.0, under - 0.5 * height, z], FRAME),
+        box([2 * x, height, 0.02], [0.0, under - 0.5 * height, -z], FRAME),
+        box([0.02, height, 2 * z], [x, under - 0.5 * height, 0.0], FRAME),
+        box([0.02, height, 2 * z], [-x, under - 0.5 * height, 0.0], FRAME),
+    ]
 
 
 def rectangular(rng: Rng) -> list[Part]:
@@ -112,12 +115,15 @@ def trestle(rng: Rng) -> list[Part]:
         parts.append(box([0.07, 0.05, span], [side * x, under - 0.025, 0.0], FRAME))
         if boards:
             parts.append(box([0.07, 0.06, span], [side * x, 0.03, 0.0], FRAME))
-            parts.append(box([0.06, under - 0.11, rng.uniform(0.08, 0.2)], [side * x, 0.5 * (under - 0.05 + 0.06), 0.0],
-                             FRAME))
+            parts.append(
+                box([0.06, under - 0.11, rng.uniform(0.08, 0.2)], [side * x, 0.5 * (under - 0.05 + 0.06), 0.0], FRAME)
+            )
         else:
             half = 0.5 * span - 0.03
-            parts += [rod([side * x, under - 0.05, -half], [side * x, 0.0, half], 0.025),
-                      rod([side * x, under - 0.05, half], [side * x, 0.0, -half], 0.025)]
+            parts += [
+                rod([side * x, under - 0.05, -half], [side * x, 0.0, half], 0.025),
+                rod([side * x, under - 0.05, half], [side * x, 0.0, -half], 0.025),
+            ]
     parts.append(box([2 * x, 0.06, 0.05], [0.0, rng.uniform(0.25, 0.45), 0.0], FRAME))
     return parts
 
@@ -151,8 +157,7 @@ def desk(rng: Rng) -> list[Part]:
         parts.append(box([0.03, under, depth - 0.04], [-0.5 * width + 0.03, 0.5 * under, 0.0], FRAME))
     else:
         for sz in (-1.0, 1.0):
-            parts.append(box([0.04, under, 0.04], [-0.5 * width + 0.05, 0.5 * under, sz * (0.5 * depth - 0.05)],
-                             FRAME))
+            parts.append(box([0.04, under, 0.04], [-0.5 * width + 0.05, 0.5 * under, sz * (0.5 * depth - 0.05)], FRAME))
     return parts
 
 

@@ -1,5 +1,6 @@
 """Every command line: ``--help`` answers without importing torch, shows the docstring examples and
 a help text on every option; the shared options and deprecated spellings behave alike everywhere."""
+
 from __future__ import annotations
 
 import argparse
@@ -49,8 +50,14 @@ def test_the_command_table_matches_pyproject():
 
 @pytest.fixture(scope="module")
 def helps():
-    probe = subprocess.run([sys.executable, "-c", HELP_PROBE, json.dumps(COMMANDS)], cwd=REPO, capture_output=True,
-                           text=True, timeout=300, env={"PYTHONPATH": str(REPO), "PATH": "/usr/bin:/bin"})
+    probe = subprocess.run(
+        [sys.executable, "-c", HELP_PROBE, json.dumps(COMMANDS)],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env={"PYTHONPATH": str(REPO), "PATH": "/usr/bin:/bin"},
+    )
     assert probe.returncode == 0, probe.stderr[-2000:]
     return json.loads(probe.stdout.strip().splitlines()[-1])
 
@@ -79,7 +86,9 @@ def _parsers():
 def test_every_option_has_help_and_shared_options_share_their_names():
     for command, parser in _parsers():
         for action in parser._actions:
-            if action.help == argparse.SUPPRESS or isinstance(action, (argparse._HelpAction, argparse._SubParsersAction)):
+            if action.help == argparse.SUPPRESS or isinstance(
+                action, (argparse._HelpAction, argparse._SubParsersAction)
+            ):
                 continue
             assert action.help, f"{command} {action.option_strings or action.dest}: no help text"
         options = {s for a in parser._actions for s in a.option_strings if a.help != argparse.SUPPRESS}
@@ -88,8 +97,11 @@ def test_every_option_has_help_and_shared_options_share_their_names():
 
 
 def test_shared_parent_and_defaults_in_help(capsys):
-    parser = make_parser("tool", "tool: does things.\n\n    tool --out x   # example\n",
-                         parents=[common_options(out="output folder", out_default="o", workers="processes", seed="seed")])
+    parser = make_parser(
+        "tool",
+        "tool: does things.\n\n    tool --out x   # example\n",
+        parents=[common_options(out="output folder", out_default="o", workers="processes", seed="seed")],
+    )
     parser.add_argument("--old-out", help="x")
     deprecated_alias(parser, "--output-dir", "--out")
     text = parser.format_help()

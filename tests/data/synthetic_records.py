@@ -1,6 +1,6 @@
 """Geometrically exact multi-view records for the training tests: cuboids seen by an orbiting camera.
 
-Like Scene-Shapes (DESIGN.md §4) at toy size: two yawed cuboids on the Y = 0 floor at
+Like Scene-Shapes (docs/design.md §4) at toy size: two yawed cuboids on the Y = 0 floor at
 X in [-0.4, 0.4], Z in [1.5, 1.9] of the first camera's ground frame (Y up), and a camera
 orbiting the vertical axis through (0, 0, 1.7) at radius 1.7, looking at (0, 0.3, 1.7).
 Masks come from ``usl.render.rasterize_hard`` (a z-buffer checked against pyrender by the

@@ -5,6 +5,7 @@ the evaluator renders predictions with our own z-buffer rasterizer. Every object
 made from one ico-sphere, so all objects share one topology and a "perfect" predictor can return
 the true meshes as ``ObjectPredictions``.
 """
+
 from __future__ import annotations
 
 import os
@@ -51,7 +52,9 @@ def scene_objects(seed: int) -> list[tuple[int, int, np.ndarray, np.ndarray]]:
     out = []
     for n, x in enumerate((-0.22, 0.22)):
         radii = rng.uniform(0.1, 0.2, 3)
-        verts, faces = ellipsoid([x + rng.uniform(-0.03, 0.03), 0.0, rng.uniform(-0.1, 0.1)], radii, rng.uniform(0, np.pi))
+        verts, faces = ellipsoid(
+            [x + rng.uniform(-0.03, 0.03), 0.0, rng.uniform(-0.1, 0.1)], radii, rng.uniform(0, np.pi)
+        )
         out.append((10 + n, 1 + (seed + n) % 3, verts, faces))
     return out
 
@@ -91,7 +94,11 @@ def build_scene(unit: SceneUnit) -> SceneRecord:
     for view, pose in enumerate(camera_poses(unit.num_views)):
         color, masks, depth = render_truth(objects, pose)
         instances = [make_instance(iid, cid, m, depth) for (iid, cid, _, _), m in zip(objects, masks) if m.any()]
-        frames.append(frame_row(unit.scene_id, view, encode_image(color), intrinsics(), pose, instances, SIZE, SIZE, encode_depth(depth)))
+        frames.append(
+            frame_row(
+                unit.scene_id, view, encode_image(color), intrinsics(), pose, instances, SIZE, SIZE, encode_depth(depth)
+            )
+        )
     rows = [object_row(unit.scene_id, iid, cid, f"ellipsoid-{unit.seed}-{iid}", v, f) for iid, cid, v, f in objects]
     return SceneRecord(unit.scene_id, frames, rows)
 
@@ -100,8 +107,14 @@ def build_dataset(out: Path, num_scenes: int = 2, num_views: int = 4) -> Path:
     """A records folder with split "val" of ``num_scenes`` scenes and the Scene-Shapes spec (categories, baselines)."""
     spec = load_dataset_spec("scene_shapes")
     units = [SceneUnit(f"scene{s}", s, num_views) for s in range(num_scenes)]
-    run_build(BuildOptions(out, workers=1, progress=False), spec, {"test": "eval"}, [ShardPlan("val", 0, units)],
-              build_scene, {"command": "tests"})
+    run_build(
+        BuildOptions(out, workers=1, progress=False),
+        spec,
+        {"test": "eval"},
+        [ShardPlan("val", 0, units)],
+        build_scene,
+        {"command": "tests"},
+    )
     return out
 
 
@@ -126,16 +139,27 @@ class PerfectPredictor:
             faces = inp.true_meshes[int(frame.instance_ids[0])].faces
             n = len(frame.instance_ids)
             ids = torch.full((n,), -1) if self.uses_detections else frame.instance_ids.clone()
-            out.append(ObjectPredictions(
-                boxes=frame.boxes + self.box_shift, labels=frame.labels.clone(), scores=torch.linspace(0.9, 0.8, n),
-                z=verts[..., 2].mean(1), rho=verts[..., 2].amax(1) - verts[..., 2].amin(1), verts=verts, faces=faces,
-                instance_ids=ids,
-            ))
+            out.append(
+                ObjectPredictions(
+                    boxes=frame.boxes + self.box_shift,
+                    labels=frame.labels.clone(),
+                    scores=torch.linspace(0.9, 0.8, n),
+                    z=verts[..., 2].mean(1),
+                    rho=verts[..., 2].amax(1) - verts[..., 2].amin(1),
+                    verts=verts,
+                    faces=faces,
+                    instance_ids=ids,
+                )
+            )
         return out
 
 
 def tiny_checkpoint(
-    run_dir: Path, seed: int = 0, categories: tuple[str, ...] | None = None, overrides: tuple[str, ...] = (), iteration: int = 0
+    run_dir: Path,
+    seed: int = 0,
+    categories: tuple[str, ...] | None = None,
+    overrides: tuple[str, ...] = (),
+    iteration: int = 0,
 ) -> Path:
     """A randomly initialised tiny USL model saved like a training run (categories of scene_shapes by
     default), as if at ``iteration``, with config ``overrides``."""

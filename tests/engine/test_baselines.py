@@ -1,4 +1,5 @@
 """Sphere baselines: the spec's z / rho, spheres that fill each object frustum, oracle depth."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -20,9 +21,14 @@ def make_input(view_id: int = 0, num_objects: int = 3, with_meshes: bool = True)
         x0, y0 = rng.uniform(10, 200), rng.uniform(10, 150)
         boxes.append([x0, y0, x0 + rng.uniform(20, 100), y0 + rng.uniform(20, 80)])
     frame = FrameData(
-        scene_id="s", view_id=view_id, image=torch.zeros(3, 240, 320), K=torch.tensor(K, dtype=torch.float32),
-        cam_to_world=torch.eye(4, dtype=torch.float64), instance_ids=torch.arange(num_objects) + 5,
-        labels=torch.zeros(num_objects, dtype=torch.int64), boxes=torch.tensor(boxes, dtype=torch.float32),
+        scene_id="s",
+        view_id=view_id,
+        image=torch.zeros(3, 240, 320),
+        K=torch.tensor(K, dtype=torch.float32),
+        cam_to_world=torch.eye(4, dtype=torch.float64),
+        instance_ids=torch.arange(num_objects) + 5,
+        labels=torch.zeros(num_objects, dtype=torch.int64),
+        boxes=torch.tensor(boxes, dtype=torch.float32),
         masks=torch.zeros(num_objects, 240, 320, dtype=torch.bool),
         depth_min=torch.tensor(rng.uniform(1.0, 3.0, num_objects), dtype=torch.float32),
     )

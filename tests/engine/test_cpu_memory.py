@@ -1,6 +1,7 @@
 """usl.engine.cpu_memory, checked against glibc's own accounting (``mallinfo2``): after
 ``retain_freed_memory`` a large tensor comes from the heap, not a mapping of its own, and its
 memory stays in the process once freed, where glibc's defaults map it and hand it back."""
+
 import json
 import subprocess
 import sys

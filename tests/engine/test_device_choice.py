@@ -1,4 +1,5 @@
 """train.device under torchrun: one GPU per process, or the CPU (NCCL cannot share a GPU)."""
+
 import pytest
 import torch
 
@@ -17,14 +18,17 @@ def gpus(monkeypatch):
     return set_count
 
 
-@pytest.mark.parametrize("count, procs, expected", [
-    (0, 1, ["cpu"]),
-    (1, 1, ["cuda:0"]),
-    (2, 2, ["cuda:0", "cuda:1"]),
-    (4, 2, ["cuda:0", "cuda:1"]),
-    (1, 2, ["cpu", "cpu"]),  # the main job's two processes on a one-GPU laptop
-    (2, 3, ["cpu", "cpu", "cpu"]),
-])
+@pytest.mark.parametrize(
+    "count, procs, expected",
+    [
+        (0, 1, ["cpu"]),
+        (1, 1, ["cuda:0"]),
+        (2, 2, ["cuda:0", "cuda:1"]),
+        (4, 2, ["cuda:0", "cuda:1"]),
+        (1, 2, ["cpu", "cpu"]),  # the main job's two processes on a one-GPU laptop
+        (2, 3, ["cpu", "cpu", "cpu"]),
+    ],
+)
 def test_auto_takes_a_gpu_per_process_or_else_the_cpu(gpus, count, procs, expected):
     gpus(count)
     assert [str(choose_device("auto", rank, procs)) for rank in range(procs)] == expected

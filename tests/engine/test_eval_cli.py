@@ -1,4 +1,5 @@
 """``usl-eval`` end to end: every table row with a tiny random checkpoint, files, and clear errors."""
+
 from __future__ import annotations
 
 import json
@@ -22,13 +23,40 @@ def data(tmp_path_factory):
 def test_every_row_with_a_checkpoint(data, tmp_path, capsys):
     dataset, checkpoint = data
     out = tmp_path / "eval"
-    rc = main([str(dataset), "--checkpoint", str(checkpoint), "--rows", ALL_ROWS, "--out", str(out), "--samples-3d", "200",
-               "--pictures", "1", "--input-views", "first", "--other-views", "furthest:0.5", "--device", "cpu", "--quiet"])
+    rc = main(
+        [
+            str(dataset),
+            "--checkpoint",
+            str(checkpoint),
+            "--rows",
+            ALL_ROWS,
+            "--out",
+            str(out),
+            "--samples-3d",
+            "200",
+            "--pictures",
+            "1",
+            "--input-views",
+            "first",
+            "--other-views",
+            "furthest:0.5",
+            "--device",
+            "cpu",
+            "--quiet",
+        ]
+    )
     assert rc == 0, capsys.readouterr().err
     document = json.loads((out / "metrics.json").read_text())
     names = [p["name"] for p in document["predictors"]]
-    assert names == ["Random depth", "Fixed depth", "USL", "USL w/ detections", "Layout-only (USL)",
-                     "Sphere-only w/ true depth", "USL w/ true depth"]
+    assert names == [
+        "Random depth",
+        "Fixed depth",
+        "USL",
+        "USL w/ detections",
+        "Layout-only (USL)",
+        "Sphere-only w/ true depth",
+        "USL w/ true depth",
+    ]
     by_name = {p["name"]: p for p in document["predictors"]}
     assert by_name["USL"]["num_objects"] == 4 and by_name["USL"]["metrics"]["chamfer"] is not None
     assert set(by_name["USL w/ detections"]["detection"]) >= {"bbox/AP", "bbox/AP50", "segm/AP", "segm/AP50", "matched"}
@@ -39,7 +67,10 @@ def test_every_row_with_a_checkpoint(data, tmp_path, capsys):
     assert len(list((out / "pictures").rglob("*.png"))) == len(names)
     table = (out / "table.md").read_text()
     assert table in capsys.readouterr().out and "| USL w/ true depth |" in table
-    assert "Pictures: [pictures/index.md](pictures/index.md)" in table and document["links"]["pictures"] == "pictures/index.md"
+    assert (
+        "Pictures: [pictures/index.md](pictures/index.md)" in table
+        and document["links"]["pictures"] == "pictures/index.md"
+    )
     assert "curves" not in table  # the random checkpoint's run folder has no curves.png
 
 
@@ -53,11 +84,15 @@ def test_model_rows_are_named_by_their_training_and_the_scored_checkpoint_is_rec
         (usl_checkpoint, ["--model-name", "USL (5 views)"], "USL (5 views)", 0),
     ):
         out = tmp_path / name.replace(" ", "_")
-        assert main([str(dataset), "--checkpoint", str(checkpoint), "--out", str(out), *common, *extra]) == 0, capsys.readouterr().err
+        assert main([str(dataset), "--checkpoint", str(checkpoint), "--out", str(out), *common, *extra]) == 0, (
+            capsys.readouterr().err
+        )
         document = json.loads((out / "metrics.json").read_text())
         assert [p["name"] for p in document["predictors"]] == ["Fixed depth", name, f"{name} w/ detections"]
         file = meshrcnn if iteration == 7 else usl_checkpoint
-        assert document["checkpoint"]["path"] == str(file.resolve()) and document["checkpoint"]["iteration"] == iteration
+        assert (
+            document["checkpoint"]["path"] == str(file.resolve()) and document["checkpoint"]["iteration"] == iteration
+        )
         assert f"{name}: checkpoint `{file.resolve()}`, iteration {iteration}" in (out / "table.md").read_text()
     assert main([str(dataset), "--rows", "fixed", "--out", str(tmp_path / "none"), *common[2:]]) == 0
     assert json.loads((tmp_path / "none" / "metrics.json").read_text())["checkpoint"] is None
@@ -80,8 +115,26 @@ def test_pictures_are_spread_or_extremes_and_indexed(data, tmp_path, capsys, pic
     dataset, checkpoint = data
     (checkpoint.parent.parent / "curves.png").write_bytes(b"")  # a training run's curves
     out = tmp_path / "eval"
-    rc = main([str(dataset), "--checkpoint", str(checkpoint), "--rows", "fixed,model", "--out", str(out), "--samples-3d", "50",
-               "--pictures", "2", "--pictures-by", pictures_by, "--device", "cpu", "--quiet"])
+    rc = main(
+        [
+            str(dataset),
+            "--checkpoint",
+            str(checkpoint),
+            "--rows",
+            "fixed,model",
+            "--out",
+            str(out),
+            "--samples-3d",
+            "50",
+            "--pictures",
+            "2",
+            "--pictures-by",
+            pictures_by,
+            "--device",
+            "cpu",
+            "--quiet",
+        ]
+    )
     assert rc == 0, capsys.readouterr().err
     rows = [json.loads(line) for line in (out / "objects.jsonl").read_text().splitlines()]
     entries = _index_entries((out / "pictures" / "index.md").read_text())

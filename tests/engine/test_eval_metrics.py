@@ -3,6 +3,7 @@
 Oracles: pyrender (OpenGL) masks and depth for ground truth and for re-rendering predictions,
 numpy for IoU / gIoU, pycocotools for AP. The evaluator itself renders with usl's rasterizer.
 """
+
 from __future__ import annotations
 
 import json
@@ -76,8 +77,10 @@ def test_view_metrics_match_pyrender_reprojection(dataset):
         frame = decode_frame(frames[0], CategoryIndex(records.categories))
         pred = fixed([EvalInput(frame, {})])[0]
         pose0 = frame_pose(frames[0])
-        world = [(int(i), 0, v.double().numpy() @ pose0[:3, :3].T + pose0[:3, 3], pred.faces.numpy())
-                 for i, v in zip(pred.instance_ids, pred.verts)]
+        world = [
+            (int(i), 0, v.double().numpy() @ pose0[:3, :3].T + pose0[:3, 3], pred.faces.numpy())
+            for i, v in zip(pred.instance_ids, pred.verts)
+        ]
         per_object = {r["instance_id"]: ([], [], []) for r in rows}
         for f in frames[1:]:
             _, masks, depth = render_truth(world, frame_pose(f))
@@ -87,7 +90,9 @@ def test_view_metrics_match_pyrender_reprojection(dataset):
                 iou = (masks[n] & true).sum() / (masks[n] | true).sum()
                 near = depth[masks[n]].min() if masks[n].any() else math.nan
                 per_object[inst["instance_id"]][0].append(iou)
-                per_object[inst["instance_id"]][1].append(_np_giou(_np_box(masks[n]), inst["box_xyxy"]) if masks[n].any() else math.nan)
+                per_object[inst["instance_id"]][1].append(
+                    _np_giou(_np_box(masks[n]), inst["box_xyxy"]) if masks[n].any() else math.nan
+                )
                 per_object[inst["instance_id"]][2].append(abs(near - inst["depth_min"]))
         for r in rows:
             ious, gious, depths = per_object[r["instance_id"]]
@@ -134,7 +139,9 @@ def test_baselines_rank_below_perfect_and_report_is_strict_json(dataset, tmp_pat
 def test_occlusion_setting_changes_only_occluded_objects(dataset):
     perfect = PerfectPredictor()
     together = run_evaluation(dataset, "val", [perfect], EvalConfig(input_views="all", **FAST), progress=False)
-    alone = run_evaluation(dataset, "val", [perfect], EvalConfig(input_views="all", occlusion=False, **FAST), progress=False)
+    alone = run_evaluation(
+        dataset, "val", [perfect], EvalConfig(input_views="all", occlusion=False, **FAST), progress=False
+    )
     a, b = together.summaries[0].metrics, alone.summaries[0].metrics
     # Full silhouettes overshoot the visible true masks wherever objects overlap.
     assert b["mask_iou_views"] < a["mask_iou_views"] - 0.005
@@ -147,7 +154,13 @@ def test_chunking_does_not_change_results(dataset):
     config = dict(input_views="first", **FAST)
     big = run_evaluation(dataset, "val", predictors, EvalConfig(**config), progress=False)
     # One view per decode chunk and a render budget below one view: every group is rendered alone.
-    small = run_evaluation(dataset, "val", predictors, EvalConfig(views_per_chunk=1, max_render_bytes=1, batch_size=1, **config), progress=False)
+    small = run_evaluation(
+        dataset,
+        "val",
+        predictors,
+        EvalConfig(views_per_chunk=1, max_render_bytes=1, batch_size=1, **config),
+        progress=False,
+    )
     assert big.rows == small.rows
     assert big.summaries[1].detection == small.summaries[1].detection
 
@@ -202,8 +215,12 @@ def test_per_category_means_match_pandas_on_objects_jsonl(dataset, tmp_path):
     # the true category of each instance, read from the records themselves
     records = RecordsDataset(dataset, "val")
     names = {c["id"]: c["name"] for c in records.categories}
-    truth = {(s, i["instance_id"]): names[i["category_id"]] for s in records.scene_ids
-             for f in records.read_scene(s) for i in f["instances"]}
+    truth = {
+        (s, i["instance_id"]): names[i["category_id"]]
+        for s in records.scene_ids
+        for f in records.read_scene(s)
+        for i in f["instances"]
+    }
     assert [truth[(r.scene_id, r.instance_id)] for r in objects.itertuples()] == objects["category"].tolist()
     assert objects["category"].nunique() == 3
     document = json.loads(paths["metrics"].read_text())

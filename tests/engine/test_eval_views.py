@@ -1,4 +1,5 @@
 """Input-view and other-view selection (incl. the paper's ScanNet "furthest 20% of the track")."""
+
 from __future__ import annotations
 
 import pytest

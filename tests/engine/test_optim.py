@@ -1,4 +1,5 @@
 """Parameter groups of optim.lr_mult, and the schedule over them."""
+
 import pytest
 import torch
 from torch import nn
@@ -24,7 +25,9 @@ def _rates(optimizer: torch.optim.Optimizer, net: nn.Module) -> dict[str, float]
 
 def test_longest_prefix_sets_each_parameters_rate_and_the_schedule_scales_all():
     net = _net()
-    cfg = OptimConfig(name="adam", lr=1e-3, schedule="step", steps=(2,), gamma=0.1, lr_mult={"head": 10.0, "head.out": 2.0})
+    cfg = OptimConfig(
+        name="adam", lr=1e-3, schedule="step", steps=(2,), gamma=0.1, lr_mult={"head": 10.0, "head.out": 2.0}
+    )
     optimizer = build_optimizer(net.named_parameters(), cfg)
     expected = {"backbone": 1e-3, "head.stage": 1e-2, "head.out": 2e-3}
     rates = _rates(optimizer, net)

@@ -1,5 +1,6 @@
 """``usl-predict``: glTF files trimesh reads back upright with the input camera, image plane and extras;
 OBJ/PLY/HTML, overlays, the no-detection line and one-line errors for bad paths."""
+
 from __future__ import annotations
 
 import json
@@ -36,8 +37,14 @@ def fake_detector(frame):
     z, rho = torch.tensor([2.0, 3.0, 1.0]), torch.tensor([0.5, 0.8, 0.3])
     verts, faces = sphere_verts(boxes, frame.K, z, rho, level=1)
     return ObjectPredictions(
-        boxes=boxes, labels=torch.tensor([0, 2, 1]), scores=torch.tensor([0.9, 0.7, 0.2]), z=z, rho=rho,
-        verts=verts, faces=faces, instance_ids=torch.full((3,), -1),
+        boxes=boxes,
+        labels=torch.tensor([0, 2, 1]),
+        scores=torch.tensor([0.9, 0.7, 0.2]),
+        z=z,
+        rho=rho,
+        verts=verts,
+        faces=faces,
+        instance_ids=torch.full((3,), -1),
     )
 
 
@@ -45,8 +52,9 @@ GLTF_FROM_OPENCV = np.array([1.0, -1.0, -1.0])
 
 
 def test_predict_writes_named_meshes_and_overlay(image_path, tmp_path):
-    written = predict_images(fake_detector, [image_path], tmp_path, CATEGORIES, fov_deg=60.0,
-                             formats=["glb", "obj", "ply", "html"])
+    written = predict_images(
+        fake_detector, [image_path], tmp_path, CATEGORIES, fov_deg=60.0, formats=["glb", "obj", "ply", "html"]
+    )
     result = written[str(image_path)]
     assert [f.name for f in result.files] == ["room.glb", "room.obj", "room.ply", "room.html", "room_overlay.png"]
     assert result.num_objects == 2 and result.best_score == pytest.approx(0.9)
@@ -82,11 +90,16 @@ def test_glb_is_y_up_with_the_input_camera_image_plane_and_extras(image_path, tm
     plane = scene.geometry[IMAGE_NODE]
     corners = plane.vertices * GLTF_FROM_OPENCV  # back to OpenCV axes
     projected = (corners @ K.T)[:, :2] / (corners @ K.T)[:, 2:]
-    np.testing.assert_allclose(sorted(map(tuple, projected.round(6))), [(0, 0), (0, 80), (120, 0), (120, 80)], atol=1e-4)  # float32
+    np.testing.assert_allclose(
+        sorted(map(tuple, projected.round(6))), [(0, 0), (0, 80), (120, 0), (120, 80)], atol=1e-4
+    )  # float32
     assert corners[:, 2].min() > centre[2] * -1.0  # behind the objects
     assert plane.visual.material.baseColorTexture.size == (120, 80)
     # per-object extras on the nodes
-    extras = {node: scene.graph.transforms.edge_data[("world", node)].get("metadata") for node in ("00_chair", "01_dining_table")}
+    extras = {
+        node: scene.graph.transforms.edge_data[("world", node)].get("metadata")
+        for node in ("00_chair", "01_dining_table")
+    }
     assert extras["00_chair"]["category"] == "chair" and extras["00_chair"]["score"] == pytest.approx(0.9)
     assert extras["01_dining_table"]["category"] == "dining table" and extras["01_dining_table"]["category_id"] == 2
 
@@ -100,7 +113,9 @@ def test_opencv_axes_keep_the_points_and_turn_the_camera(image_path, tmp_path):
     predict_images(fake_detector, [image_path], tmp_path / "gl", CATEGORIES, fov_deg=60.0)
     predict_images(fake_detector, [image_path], tmp_path / "cv", CATEGORIES, fov_deg=60.0, axes="opencv")
     gl, cv = (trimesh.load(tmp_path / d / "room.glb") for d in ("gl", "cv"))
-    np.testing.assert_allclose(gl.geometry["00_chair"].vertices, cv.geometry["00_chair"].vertices * GLTF_FROM_OPENCV, atol=1e-6)
+    np.testing.assert_allclose(
+        gl.geometry["00_chair"].vertices, cv.geometry["00_chair"].vertices * GLTF_FROM_OPENCV, atol=1e-6
+    )
     np.testing.assert_allclose(cv.camera_transform[:3, :3], np.diag(GLTF_FROM_OPENCV), atol=1e-9)
 
 
@@ -130,12 +145,38 @@ def test_cli_with_tiny_checkpoint(image_path, checkpoint, tmp_path, capsys):
     K = np.array([[100.0, 0, 60], [0, 100.0, 40], [0, 0, 1]])
     np.savetxt(tmp_path / "k.txt", K)
     out = tmp_path / "out"
-    rc = main([str(image_path), "--checkpoint", str(checkpoint.parent.parent), "--K", str(tmp_path / "k.txt"),
-               "--out", str(out), "--score-threshold", "0.01", "--device", "cpu"])
+    rc = main(
+        [
+            str(image_path),
+            "--checkpoint",
+            str(checkpoint.parent.parent),
+            "--K",
+            str(tmp_path / "k.txt"),
+            "--out",
+            str(out),
+            "--score-threshold",
+            "0.01",
+            "--device",
+            "cpu",
+        ]
+    )
     assert rc == 0, capsys.readouterr().err
     assert "room_overlay.png" in capsys.readouterr().out
-    rc = main([str(image_path), "--checkpoint", str(checkpoint), "--fov", "60", "--out", str(tmp_path / "none"),
-               "--score-threshold", "1.01", "--device", "cpu"])
+    rc = main(
+        [
+            str(image_path),
+            "--checkpoint",
+            str(checkpoint),
+            "--fov",
+            "60",
+            "--out",
+            str(tmp_path / "none"),
+            "--score-threshold",
+            "1.01",
+            "--device",
+            "cpu",
+        ]
+    )
     line = capsys.readouterr().out.strip()
     assert rc == 0 and "no detection scores >= 1.01 (best score 0." in line and "room_overlay.png" in line
     detect, categories = model_detector(checkpoint, "cpu")
@@ -162,7 +203,9 @@ def test_cli_bad_paths_give_one_line_errors(case, message, image_path, checkpoin
     (tmp_path / "garbage.png").write_text("not an image")
     (tmp_path / "bad_k.txt").write_text("1 2")
     checkpoint = str(tmp_path / "missing.pt") if case == "checkpoint" else str(checkpoint)
-    image = {"image": str(tmp_path / "nothere.png"), "undecodable": str(tmp_path / "garbage.png")}.get(case, str(image_path))
+    image = {"image": str(tmp_path / "nothere.png"), "undecodable": str(tmp_path / "garbage.png")}.get(
+        case, str(image_path)
+    )
     camera = ["--K", str(tmp_path / "bad_k.txt")] if case == "k" else ["--fov", "60"]
     rc = main([image, "--checkpoint", checkpoint, *camera, "--out", str(tmp_path / "out")])
     err = capsys.readouterr().err.strip()

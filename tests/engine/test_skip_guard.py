@@ -1,5 +1,6 @@
 """Training stops with a clear error once most recent steps were skipped as non-finite
 (the Trainer end to end: tests/engine/test_train.py::test_non_finite_loss_skips_the_step)."""
+
 import pytest
 
 from usl.config import ConfigError, load_config

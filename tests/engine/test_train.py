@@ -1,4 +1,5 @@
 """``usl-train`` end to end on tiny synthetic records: exact resume, DDP equivalence, NaN guard, errors."""
+
 import os
 import subprocess
 import sys
@@ -23,8 +24,15 @@ from usl.model.outputs import ObjectPredictions  # noqa: E402
 from usl.model.usl_model import USLModel  # noqa: E402
 
 REPO = Path(__file__).parents[2]
-FAST = ["train.cpu_threads=1", "data.max_size=0", "data.num_views=2", "loss.mesh_points=100", "loss.mask_points=100",
-        "loss.render.resolution=16", "model.shape.num_stages=1"]
+FAST = [
+    "train.cpu_threads=1",
+    "data.max_size=0",
+    "data.num_views=2",
+    "loss.mesh_points=100",
+    "loss.mask_points=100",
+    "loss.render.resolution=16",
+    "model.shape.num_stages=1",
+]
 
 
 @pytest.fixture(scope="module")
@@ -66,8 +74,20 @@ def test_training_feedback_files(records, tmp_path, monkeypatch, capsys):
     relative data.root (saved absolute, so the run resumes from anywhere)."""
     monkeypatch.chdir(records.parent)
     out = tmp_path / "fb"
-    argv = ["--config", "tiny", "--out", str(out), f"data.root={records.name}", *FAST, "train.batch_size=2",
-            "optim.max_iter=4", "train.log_every=2", "train.checkpoint_every=2", "val.period=2", "val.num_scenes=1"]
+    argv = [
+        "--config",
+        "tiny",
+        "--out",
+        str(out),
+        f"data.root={records.name}",
+        *FAST,
+        "train.batch_size=2",
+        "optim.max_iter=4",
+        "train.log_every=2",
+        "train.checkpoint_every=2",
+        "val.period=2",
+        "val.num_scenes=1",
+    ]
     assert main(argv) == 0
     printed = capsys.readouterr().out
     cfg = load_config(out / "config.yaml")
@@ -96,13 +116,31 @@ def test_two_process_ddp_step_equals_one_process_on_the_combined_batch(records, 
     """One SGD step (lr 0.1, no momentum): weights after it hold the averaged gradient. Detection
     losses are off (their proposal sampling draws per-process random numbers) and BatchNorm is
     frozen (batch statistics differ by construction)."""
-    common = ["optim.name=sgd", "optim.lr=0.1", "optim.momentum=0", "optim.weight_decay=0", "optim.max_iter=1",
-              "optim.schedule=constant", "loss.weights.mu_2d=0", "model.detector.backbone.resnet.norm=FrozenBN",
-              "data.num_views=3", "model.shape.num_stages=2", "val.period=0"]
+    common = [
+        "optim.name=sgd",
+        "optim.lr=0.1",
+        "optim.momentum=0",
+        "optim.weight_decay=0",
+        "optim.max_iter=1",
+        "optim.schedule=constant",
+        "loss.weights.mu_2d=0",
+        "model.detector.backbone.resnet.norm=FrozenBN",
+        "data.num_views=3",
+        "model.shape.num_stages=2",
+        "val.period=0",
+    ]
     assert main(_args(records, tmp_path / "one", *common, "train.batch_size=2")) == 0
     env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(REPO)}
-    command = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2", "-m", "usl.engine.train",
-               *_args(records, tmp_path / "two", *common, "train.batch_size=1")]
+    command = [
+        sys.executable,
+        "-m",
+        "torch.distributed.run",
+        "--standalone",
+        "--nproc_per_node=2",
+        "-m",
+        "usl.engine.train",
+        *_args(records, tmp_path / "two", *common, "train.batch_size=1"),
+    ]
     result = subprocess.run(command, env=env, cwd=REPO, capture_output=True, text=True, timeout=300)
     assert result.returncode == 0, result.stderr[-3000:]
     one, two = _weights(tmp_path / "one"), _weights(tmp_path / "two")
@@ -140,8 +178,15 @@ def test_clipping_caps_the_step_and_the_log_shows_when(records, tmp_path):
     """One SGD step (no momentum or decay, one rate for every parameter) moves the weights by lr times
     the gradient, whose norm ``optim.clip_grad_norm`` caps; ``metrics.csv`` logs the norm before
     clipping (the interval's mean and its largest step) and the share of steps clipped."""
-    sgd = ["optim.name=sgd", "optim.lr=1e-3", "optim.momentum=0", "optim.weight_decay=0", "optim.schedule=constant",
-           "optim.lr_mult={}", "train.batch_size=2"]
+    sgd = [
+        "optim.name=sgd",
+        "optim.lr=1e-3",
+        "optim.momentum=0",
+        "optim.weight_decay=0",
+        "optim.schedule=constant",
+        "optim.lr_mult={}",
+        "train.batch_size=2",
+    ]
     moved, norms = {}, {}
     for name, clip in (("free", "0"), ("capped", None)):
         clip = clip or f"{norms['free'] / 4}"  # a quarter of the unclipped step's norm
@@ -156,8 +201,20 @@ def test_clipping_caps_the_step_and_the_log_shows_when(records, tmp_path):
     assert norms["capped"] == pytest.approx(norms["free"], rel=1e-5)  # the same model, batch and gradient
     assert moved["free"] == pytest.approx(1e-3 * norms["free"], rel=1e-3)
     assert moved["capped"] == pytest.approx(1e-3 * norms["free"] / 4, rel=1e-3)
-    assert main(_args(records, tmp_path / "log", "optim.max_iter=3", "train.log_every=3", "train.batch_size=2",
-                      "optim.clip_grad_norm=1e-6", "val.period=0")) == 0
+    assert (
+        main(
+            _args(
+                records,
+                tmp_path / "log",
+                "optim.max_iter=3",
+                "train.log_every=3",
+                "train.batch_size=2",
+                "optim.clip_grad_norm=1e-6",
+                "val.period=0",
+            )
+        )
+        == 0
+    )
     (row,) = read_metrics(tmp_path / "log")
     assert row["clipped"] == 1.0 and row["grad_norm_max"] >= row["grad_norm"] > 0
 

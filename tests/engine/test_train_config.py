@@ -1,4 +1,5 @@
 """Recipes, YAML loading, key=value overrides (usl.config) and usl-train's config command line."""
+
 import dataclasses
 from pathlib import Path
 
@@ -38,10 +39,21 @@ def test_recipes_follow_the_papers_recipe_table():
         assert cfg.model.shape.sampler == "roimap" and cfg.model.detector.backbone.resnet.depth == 50
     for cfg in (hypersim, scannet):  # the paper's Appendix tables: R50-FPN p2, ico3, 256-d, no passing
         assert cfg.model.detector.backbone.name == "resnet_fpn" and cfg.model.shape.features == ("p2",)
-        assert cfg.model.shape.ico_level == 3 and cfg.model.shape.hidden_dim == 256 and not cfg.model.shape.pass_features
+        assert (
+            cfg.model.shape.ico_level == 3 and cfg.model.shape.hidden_dim == 256 and not cfg.model.shape.pass_features
+        )
     # Scene-Shapes: Mesh R-CNN's ShapeNet sphere-init model (meshrcnn configs/shapenet/sphereinit_R50.yaml)
-    assert shapes.model.detector.backbone.name == "resnet" and shapes.model.shape.features == ("res2", "res3", "res4", "res5")
-    assert (shapes.model.shape.ico_level, shapes.model.shape.hidden_dim, shapes.model.shape.num_graph_convs) == (4, 128, 3)
+    assert shapes.model.detector.backbone.name == "resnet" and shapes.model.shape.features == (
+        "res2",
+        "res3",
+        "res4",
+        "res5",
+    )
+    assert (shapes.model.shape.ico_level, shapes.model.shape.hidden_dim, shapes.model.shape.num_graph_convs) == (
+        4,
+        128,
+        3,
+    )
     assert shapes.model.shape.pass_features and shapes.model.shape.bottleneck_init == "normal"
     assert shapes.model.detector.backbone.resnet.norm == "BN" and shapes.model.detector.backbone.resnet.freeze_at == 0
 
@@ -75,8 +87,16 @@ def test_the_old_single_feature_key_still_loads_and_conflicts_are_errors():
 
 
 def test_overrides_are_typed_and_nested():
-    cfg = load_config("hypersim", ["optim.lr=1e-3", "optim.steps=[10, 20]", "data.root=/data/x",
-                                   "model.shape.num_stages=1", "loss.weights.laplacian=0.5"])
+    cfg = load_config(
+        "hypersim",
+        [
+            "optim.lr=1e-3",
+            "optim.steps=[10, 20]",
+            "data.root=/data/x",
+            "model.shape.num_stages=1",
+            "loss.weights.laplacian=0.5",
+        ],
+    )
     assert cfg.optim.lr == 1e-3 and cfg.optim.steps == (10, 20) and cfg.data.root == "/data/x"
     assert cfg.model.shape.num_stages == 1 and cfg.loss.weights.laplacian == 0.5
     assert parse_overrides(["a.b=1", "a.c=x"]) == {"a": {"b": 1, "c": "x"}}
@@ -107,7 +127,9 @@ def test_bad_overrides_name_the_key_and_the_command_line(overrides, message):
     "overrides", [["model.shape.global_stage=0", "model.shape.global_basis=9"], ["model.shape.global_basis=163"]]
 )
 def test_a_global_basis_needs_the_global_stage_and_at_most_one_field_per_vertex(overrides):
-    with pytest.raises(ConfigError, match=r"^command line: .*global_basis=\d+: needs model\.shape\.global_stage > 0 and at most 162"):
+    with pytest.raises(
+        ConfigError, match=r"^command line: .*global_basis=\d+: needs model\.shape\.global_stage > 0 and at most 162"
+    ):
         load_config("tiny", overrides)
 
 
@@ -133,7 +155,10 @@ def test_list_keys_shows_every_key_with_type_value_and_doc(capsys):
     assert [line.split()[0] for line in lines] == [k.key for k in keys]
     by_key = {line.split()[0]: line for line in lines}
     assert by_key["optim.lr"].split()[1:4] == ["float", "0.001", "base"]  # tiny's value, not the default 0.01
-    assert by_key["model.shape.sampler"].split()[1:3] == ["str", "roimap"] and "Mesh R-CNN" in by_key["model.shape.sampler"]
+    assert (
+        by_key["model.shape.sampler"].split()[1:3] == ["str", "roimap"]
+        and "Mesh R-CNN" in by_key["model.shape.sampler"]
+    )
     assert "tuple[str, ...]" in by_key["model.layout.in_features"]
     external = ("model.detector.", "loss.weights.")  # documented beside their own dataclasses
     undocumented = [k.key for k in keys if not k.doc and not k.key.startswith(external)]
@@ -208,7 +233,8 @@ def test_tiny_long_is_tiny_with_its_schedule_scaled_to_the_longer_run():
     assert long.loss.dist_schedule.values == tiny.loss.dist_schedule.values
     # checkpoint_every is bookkeeping, not learning: a longer run saves less often
     rebuilt = dataclasses.replace(
-        long, name=tiny.name,
+        long,
+        name=tiny.name,
         optim=dataclasses.replace(long.optim, steps=tiny.optim.steps, max_iter=tiny.optim.max_iter),
         loss=dataclasses.replace(long.loss, dist_schedule=tiny.loss.dist_schedule),
         train=dataclasses.replace(long.train, checkpoint_every=tiny.train.checkpoint_every),

@@ -3,6 +3,7 @@
 Oracles: ``cameras.project`` (the camera convention owned elsewhere) for where points must
 land, and float64 finite differences for gradients.
 """
+
 import itertools
 
 import pytest
@@ -53,7 +54,9 @@ def test_round_trips(K):
     points = cube_to_frustum(cube, boxes, K, z, rho)
     torch.testing.assert_close(frustum_to_cube(points, boxes, K, z, rho), cube)
     # and the other way: camera points in front of the camera
-    cam = torch.rand(4, 50, 3, generator=gen, dtype=DT) * torch.tensor([2.0, 2.0, 4.0], dtype=DT) + torch.tensor([-1.0, -1.0, 0.5], dtype=DT)
+    cam = torch.rand(4, 50, 3, generator=gen, dtype=DT) * torch.tensor([2.0, 2.0, 4.0], dtype=DT) + torch.tensor(
+        [-1.0, -1.0, 0.5], dtype=DT
+    )
     torch.testing.assert_close(cube_to_frustum(frustum_to_cube(cam, boxes, K, z, rho), boxes, K, z, rho), cam)
 
 

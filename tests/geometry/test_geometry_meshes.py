@@ -1,4 +1,5 @@
 """Ico-spheres, edges, uniform Laplacian, its eigenbasis and the packed Meshes structure (trimesh, numpy as oracles)."""
+
 import numpy as np
 import pytest
 import torch
@@ -164,7 +165,9 @@ def test_laplacian_eigenbasis_is_the_smoothest_orthonormal_fields_and_starts_wit
     basis = laplacian_eigenbasis(n, unique_edges(torch.from_numpy(mesh.faces)), 25).double()
     # oracle: numpy's eigenvalues of D - A, with A built from trimesh's edges
     adjacency = np.zeros((n, n))
-    adjacency[mesh.edges_unique[:, 0], mesh.edges_unique[:, 1]] = adjacency[mesh.edges_unique[:, 1], mesh.edges_unique[:, 0]] = 1
+    adjacency[mesh.edges_unique[:, 0], mesh.edges_unique[:, 1]] = adjacency[
+        mesh.edges_unique[:, 1], mesh.edges_unique[:, 0]
+    ] = 1
     laplacian = np.diag(adjacency.sum(1)) - adjacency
     B = basis.numpy()
     np.testing.assert_allclose(B.T @ B / n, np.eye(25), atol=1e-5)  # orthogonal, unit RMS

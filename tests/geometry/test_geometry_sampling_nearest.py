@@ -1,4 +1,5 @@
 """Surface sampling (trimesh proximity as oracle) and chunked nearest neighbours (scipy cKDTree)."""
+
 import math
 
 import numpy as np

@@ -4,6 +4,7 @@ gives no signal on layout, while l_dist pulls the object towards its true silhou
 Soft silhouettes come from the render engineer's ``usl.render.rasterize_soft`` (the paper's
 sigma = blur radius = 1e-3); the true silhouette is the exact analytic silhouette of a sphere.
 """
+
 import torch
 
 from usl.geometry.icosphere import ico_sphere

@@ -1,4 +1,5 @@
 """Mesh R-CNN's 3D losses against independent oracles (scipy's cKDTree, trimesh's face normals)."""
+
 import numpy as np
 import torch
 import trimesh
@@ -46,8 +47,12 @@ def test_identical_meshes_score_near_zero_and_descent_approaches_the_target():
     gen = lambda: torch.Generator().manual_seed(1)  # noqa: E731
 
     def loss(pred):
-        p, pn = sample_points_from_meshes(Meshes.from_shared_topology(pred[None], faces), 2000, gen(), return_normals=True)
-        t, tn = sample_points_from_meshes(Meshes.from_shared_topology(target[None], faces), 2000, gen(), return_normals=True)
+        p, pn = sample_points_from_meshes(
+            Meshes.from_shared_topology(pred[None], faces), 2000, gen(), return_normals=True
+        )
+        t, tn = sample_points_from_meshes(
+            Meshes.from_shared_topology(target[None], faces), 2000, gen(), return_normals=True
+        )
         return chamfer_normal_loss(p, pn, t, tn)
 
     same = loss(target)

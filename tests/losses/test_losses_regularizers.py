@@ -1,4 +1,5 @@
 """Shape regularizers (numpy / trimesh oracles, float64 gradcheck) and the weighted objective."""
+
 import numpy as np
 import pytest
 import torch
@@ -31,7 +32,9 @@ def _two_meshes(seed: int = 0) -> tuple[list[trimesh.Trimesh], Meshes]:
 
 def test_edge_loss_is_mean_squared_edge_length_per_mesh_then_over_meshes():
     tms, meshes = _two_meshes()
-    per_mesh = [np.mean(np.sum((m.vertices[m.edges_unique[:, 0]] - m.vertices[m.edges_unique[:, 1]]) ** 2, 1)) for m in tms]
+    per_mesh = [
+        np.mean(np.sum((m.vertices[m.edges_unique[:, 0]] - m.vertices[m.edges_unique[:, 1]]) ** 2, 1)) for m in tms
+    ]
     assert mesh_edge_loss(meshes).item() == pytest.approx(np.mean(per_mesh), rel=1e-12)
 
 
@@ -61,12 +64,16 @@ def test_depth_laplacian_is_the_w_component_of_the_dense_oracle_and_blind_to_x_a
     gen = torch.Generator().manual_seed(4)
     moved_xy = v.clone()
     moved_xy[:, :2] += torch.randn(len(v), 2, generator=gen, dtype=DT)
-    assert depth_laplacian_loss(Meshes.from_shared_topology(moved_xy[None], f)).item() == pytest.approx(sphere, rel=1e-12)
+    assert depth_laplacian_loss(Meshes.from_shared_topology(moved_xy[None], f)).item() == pytest.approx(
+        sphere, rel=1e-12
+    )
     spiked = v.clone()
     spiked[7, 2] += 1.0
     assert depth_laplacian_loss(Meshes.from_shared_topology(spiked[None], f)).item() > sphere + 1e-3
-    assert laplacian_smoothing_loss(Meshes.from_shared_topology(moved_xy[None], f)).item() > 2 * laplacian_smoothing_loss(
-        Meshes.from_shared_topology(v[None], f)).item()
+    assert (
+        laplacian_smoothing_loss(Meshes.from_shared_topology(moved_xy[None], f)).item()
+        > 2 * laplacian_smoothing_loss(Meshes.from_shared_topology(v[None], f)).item()
+    )
 
 
 def test_offset_l2_is_half_squared_norm_averaged_over_vertices():
@@ -93,7 +100,9 @@ def test_normal_consistency_matches_trimesh_face_adjacency_angles_and_gradcheck(
     bumpy.vertices = bumpy.vertices * rng.uniform(0.7, 1.3, size=(len(bumpy.vertices), 1)) * [1.5, 0.6, 1.0]
     faces = torch.from_numpy(sphere.faces)
     pairs = faces_on_each_edge(faces)
-    assert sorted(map(tuple, pairs.sort(dim=1).values.tolist())) == sorted(map(tuple, np.sort(sphere.face_adjacency, axis=1).tolist()))
+    assert sorted(map(tuple, pairs.sort(dim=1).values.tolist())) == sorted(
+        map(tuple, np.sort(sphere.face_adjacency, axis=1).tolist())
+    )
     verts = torch.from_numpy(np.stack([sphere.vertices, bumpy.vertices]))
     for mesh, value in zip((sphere, bumpy), normal_consistency(verts, faces, pairs).tolist()):
         assert value == pytest.approx(np.mean(1.0 - np.cos(mesh.face_adjacency_angles)), abs=1e-9)
@@ -110,7 +119,11 @@ def test_recipes_and_combination():
         LossWeights.recipe("shapenet")
     one = torch.tensor(1.0)
     total, parts = combine_losses(
-        LossWeights.recipe("scannet"), l3d=2 * one, detection={"cls": one, "box": one}, offset_l2=10 * one, laplacian=3 * one
+        LossWeights.recipe("scannet"),
+        l3d=2 * one,
+        detection={"cls": one, "box": one},
+        offset_l2=10 * one,
+        laplacian=3 * one,
     )
     assert total.item() == pytest.approx(1 + 1 + 2 + 0.05 * 10 + 0.1 * 3)
     assert set(parts) == {"det/cls", "det/box", "l3d", "offset_l2", "laplacian"}
@@ -138,7 +151,12 @@ def test_an_image_without_objects_gives_zero_regularizers_and_no_samples():
     _, faces = ico_sphere(1)
     verts = torch.zeros(0, 42, 3, requires_grad=True)
     empty = Meshes.from_shared_topology(verts, faces)
-    for loss in (mesh_edge_loss(empty), laplacian_smoothing_loss(empty), depth_laplacian_loss(empty), offset_l2_loss(verts)):
+    for loss in (
+        mesh_edge_loss(empty),
+        laplacian_smoothing_loss(empty),
+        depth_laplacian_loss(empty),
+        offset_l2_loss(verts),
+    ):
         assert loss.item() == 0.0 and loss.requires_grad
     assert sample_points_from_meshes(empty, 10).shape == (0, 10, 3)
 
@@ -147,7 +165,9 @@ def test_the_model_averages_each_regularizer_per_image_then_over_the_batch_and_s
     from usl.model.multiview_loss import shape_regularizers
 
     v, faces = ico_sphere(1)
-    verts = v * torch.tensor([[1.0, 0.5, 2.0]]) + 0.05 * torch.randn(3, 42, 3, generator=torch.Generator().manual_seed(5))
+    verts = v * torch.tensor([[1.0, 0.5, 2.0]]) + 0.05 * torch.randn(
+        3, 42, 3, generator=torch.Generator().manual_seed(5)
+    )
     out = shape_regularizers(verts, [], faces, [2, 0, 1], {"normal": True, "edge": True, "depth_laplacian": True})
     per_mesh = normal_consistency(verts, faces, faces_on_each_edge(faces))
     assert out["normal"].item() == pytest.approx(((per_mesh[0] + per_mesh[1]) / 2 + per_mesh[2]).item() / 3)

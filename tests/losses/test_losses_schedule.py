@@ -1,4 +1,5 @@
 """The loss-balance schedule (``loss.dist_schedule``): piecewise linear, constant outside its knots."""
+
 import numpy as np
 import pytest
 
@@ -19,11 +20,14 @@ def test_no_knots_is_the_papers_constant_balance():
     assert load_config("scene_shapes").loss.dist_schedule == PiecewiseLinear()
 
 
-@pytest.mark.parametrize("override, message", [
-    ("loss.dist_schedule={iters: [10, 5], values: [1, 0.5]}", "increase"),
-    ("loss.dist_schedule={iters: [10], values: [1, 0.5]}", "one value per knot"),
-    ("loss.dist_schedule={iters: [10], values: [-1]}", ">= 0"),
-])
+@pytest.mark.parametrize(
+    "override, message",
+    [
+        ("loss.dist_schedule={iters: [10, 5], values: [1, 0.5]}", "increase"),
+        ("loss.dist_schedule={iters: [10], values: [1, 0.5]}", "one value per knot"),
+        ("loss.dist_schedule={iters: [10], values: [-1]}", ">= 0"),
+    ],
+)
 def test_bad_schedules_are_config_errors_naming_the_key(override, message):
     with pytest.raises(ConfigError, match=rf"loss\.dist_schedule.*{message}"):
         load_config("tiny", [override])

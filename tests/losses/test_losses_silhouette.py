@@ -1,4 +1,5 @@
 """The 2D silhouette losses: mask point sampling, l_dist, l_xent and its IoU gate, l_2D."""
+
 import math
 
 import numpy as np
@@ -50,7 +51,9 @@ def test_sample_mask_points_is_uniform_over_the_silhouette():
     mask = torch.zeros(10, 10, dtype=torch.bool)
     mask[2:6, 1:9] = True  # 32 pixels, sample 8 of them per draw
     draws = 4000
-    points, _ = sample_mask_points(mask.expand(draws, -1, -1), 8, jitter=False, generator=torch.Generator().manual_seed(2))
+    points, _ = sample_mask_points(
+        mask.expand(draws, -1, -1), 8, jitter=False, generator=torch.Generator().manual_seed(2)
+    )
     counts = np.zeros((10, 10))
     np.add.at(counts, (points[..., 1].floor().long().numpy(), points[..., 0].floor().long().numpy()), 1)
     freq = counts[2:6, 1:9] / draws
@@ -78,7 +81,9 @@ def test_chamfer_loss_matches_brute_force_with_padding_and_points_behind_the_cam
     sizes = torch.tensor([[60, 80], [60, 80], [120, 40]])
     loss = silhouette_chamfer_loss(points, K.expand(P, 3, 3), sizes, true, lengths, min_depth=0.01)
     for p in range(P):
-        expected = _oracle_chamfer(points[p].numpy(), K.numpy(), sizes[p].tolist(), true[p].numpy(), int(lengths[p]), 0.01)
+        expected = _oracle_chamfer(
+            points[p].numpy(), K.numpy(), sizes[p].tolist(), true[p].numpy(), int(lengths[p]), 0.01
+        )
         assert loss[p].item() == pytest.approx(expected, rel=1e-10)
 
 
@@ -97,7 +102,9 @@ def test_chamfer_loss_is_resolution_independent_and_zero_for_undefined_pairs():
 
 def test_chamfer_loss_gradcheck():
     gen = torch.Generator().manual_seed(5)
-    points = (torch.randn(2, 7, 3, generator=gen, dtype=DT) * 0.3 + torch.tensor([0.0, 0.0, 2.0], dtype=DT)).requires_grad_()
+    points = (
+        torch.randn(2, 7, 3, generator=gen, dtype=DT) * 0.3 + torch.tensor([0.0, 0.0, 2.0], dtype=DT)
+    ).requires_grad_()
     true = torch.rand(2, 6, 2, generator=gen, dtype=DT) * 60
     lengths = torch.tensor([6, 3])
     assert torch.autograd.gradcheck(lambda p: silhouette_chamfer_loss(p, K, (60, 80), true, lengths), (points,))
@@ -170,7 +177,9 @@ def test_soft_iou_of_binary_silhouettes_is_pycocotools_iou_and_its_gradient_is_e
         rle = [mask_utils.encode(np.asfortranarray((m[p] & valid[p]).numpy().astype(np.uint8))) for m in (pred, true)]
         expected = mask_utils.iou([rle[0]], [rle[1]], [False])[0, 0]
         assert 1.0 - loss[p].item() == pytest.approx(expected, rel=1e-9)
-    assert soft_iou_loss(torch.zeros(1, 4, 4, dtype=DT), torch.zeros(1, 4, 4)).item() == 1.0  # nothing to match: no credit
+    assert (
+        soft_iou_loss(torch.zeros(1, 4, 4, dtype=DT), torch.zeros(1, 4, 4)).item() == 1.0
+    )  # nothing to match: no credit
     soft = (torch.rand(2, 5, 5, generator=gen, dtype=DT) * 0.9 + 0.05).requires_grad_()
     target = torch.rand(2, 5, 5, generator=gen, dtype=DT)  # fractional coverage
     assert torch.autograd.gradcheck(lambda x: soft_iou_loss(x, target, valid[:2, :5, 2:7]), (soft,))  # masked cells too

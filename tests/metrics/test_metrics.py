@@ -1,5 +1,6 @@
 """Evaluation metrics: Chamfer / F1 (scipy cKDTree oracle), mask IoU (pycocotools oracle),
 box gIoU and boxes of masks (hand cases), nearest-depth L1."""
+
 import numpy as np
 import pycocotools.mask as mask_utils
 import pytest

@@ -3,6 +3,7 @@
 They transcribe the published semantics (torchvision's RoIAlign CPU kernel and the
 textbook greedy NMS) one sample / one box at a time, sharing no code with usl.
 """
+
 from __future__ import annotations
 
 import math

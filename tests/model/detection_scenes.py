@@ -1,4 +1,5 @@
 """A tiny synthetic detection set: coloured rectangles (class 0) and ellipses (class 1) on noise."""
+
 from __future__ import annotations
 
 import torch

@@ -11,6 +11,7 @@ Conv2dNormActivation ``.0`` names of a newer state dict); detectron2/modeling/ba
 proposal_generator/rpn.py, roi_heads/{box_head,fast_rcnn,mask_head}.py; Caffe2 blob names as
 detectron2/checkpoint/c2_model_loading.py reads them.
 """
+
 from __future__ import annotations
 
 BLOCKS = (3, 4, 6, 3)  # ResNet-50
@@ -42,7 +43,12 @@ def torchvision_resnet50(width=64, prefix="", batch_counters=True, fc=True):
             yield f"{prefix}{base}.conv{k}.weight", shape, f"backbone.bottom_up.{base}.conv{k}.weight", "same"
             yield from norm(f"{base}.bn{k}", shape[0])
         if block == 0:
-            yield f"{prefix}{base}.downsample.0.weight", (cout, cin, 1, 1), f"backbone.bottom_up.{base}.downsample.0.weight", "same"
+            yield (
+                f"{prefix}{base}.downsample.0.weight",
+                (cout, cin, 1, 1),
+                f"backbone.bottom_up.{base}.downsample.0.weight",
+                "same",
+            )
             yield from norm(f"{base}.downsample.1", cout)
     if fc:
         yield f"{prefix}fc.weight", (1000, 32 * width), "backbone.bottom_up.fc.weight", "same"
@@ -56,19 +62,43 @@ def torchvision_maskrcnn(width=64, fpn=256, fc=1024, classes=91, new_names=False
     for i in range(4):
         cin = 4 * width * 2**i
         for param, shape in (("weight", (fpn, cin, 1, 1)), ("bias", (fpn,))):
-            yield f"backbone.fpn.inner_blocks.{i}{dot0}.{param}", shape, f"backbone.fpn.lateral_convs.{i}.{param}", "same"
+            yield (
+                f"backbone.fpn.inner_blocks.{i}{dot0}.{param}",
+                shape,
+                f"backbone.fpn.lateral_convs.{i}.{param}",
+                "same",
+            )
         for param, shape in (("weight", (fpn, fpn, 3, 3)), ("bias", (fpn,))):
-            yield f"backbone.fpn.layer_blocks.{i}{dot0}.{param}", shape, f"backbone.fpn.output_convs.{i}.{param}", "same"
+            yield (
+                f"backbone.fpn.layer_blocks.{i}{dot0}.{param}",
+                shape,
+                f"backbone.fpn.output_convs.{i}.{param}",
+                "same",
+            )
     conv = "conv.0.0" if new_names else "conv"
-    for ours, theirs, out, k in (("conv", conv, fpn, 3), ("objectness_logits", "cls_logits", 3, 1), ("anchor_deltas", "bbox_pred", 12, 1)):
+    for ours, theirs, out, k in (
+        ("conv", conv, fpn, 3),
+        ("objectness_logits", "cls_logits", 3, 1),
+        ("anchor_deltas", "bbox_pred", 12, 1),
+    ):
         yield f"rpn.head.{theirs}.weight", (out, fpn, k, k), f"proposal_generator.head.{ours}.weight", "same"
         yield f"rpn.head.{theirs}.bias", (out,), f"proposal_generator.head.{ours}.bias", "same"
     for index, (name, fan_in) in enumerate((("fc6", fpn * 49), ("fc7", fc))):
         yield f"roi_heads.box_head.{name}.weight", (fc, fan_in), f"roi_heads.box_head.fcs.{index}.weight", "same"
         yield f"roi_heads.box_head.{name}.bias", (fc,), f"roi_heads.box_head.fcs.{index}.bias", "same"
-    yield "roi_heads.box_predictor.cls_score.weight", (classes, fc), "roi_heads.box_predictor.cls_score.weight", "bg_last"
+    yield (
+        "roi_heads.box_predictor.cls_score.weight",
+        (classes, fc),
+        "roi_heads.box_predictor.cls_score.weight",
+        "bg_last",
+    )
     yield "roi_heads.box_predictor.cls_score.bias", (classes,), "roi_heads.box_predictor.cls_score.bias", "bg_last"
-    yield "roi_heads.box_predictor.bbox_pred.weight", (4 * classes, fc), "roi_heads.box_predictor.bbox_pred.weight", "drop4"
+    yield (
+        "roi_heads.box_predictor.bbox_pred.weight",
+        (4 * classes, fc),
+        "roi_heads.box_predictor.bbox_pred.weight",
+        "drop4",
+    )
     yield "roi_heads.box_predictor.bbox_pred.bias", (4 * classes,), "roi_heads.box_predictor.bbox_pred.bias", "drop4"
     for i in range(4):
         name = f"{i}.0" if new_names else f"mask_fcn{i + 1}"
@@ -76,7 +106,12 @@ def torchvision_maskrcnn(width=64, fpn=256, fc=1024, classes=91, new_names=False
         yield f"roi_heads.mask_head.{name}.bias", (fpn,), f"roi_heads.mask_head.convs.{i}.bias", "same"
     yield "roi_heads.mask_predictor.conv5_mask.weight", (fpn, fpn, 2, 2), "roi_heads.mask_head.deconv.weight", "same"
     yield "roi_heads.mask_predictor.conv5_mask.bias", (fpn,), "roi_heads.mask_head.deconv.bias", "same"
-    yield "roi_heads.mask_predictor.mask_fcn_logits.weight", (classes, fpn, 1, 1), "roi_heads.mask_head.predictor.weight", "drop1"
+    yield (
+        "roi_heads.mask_predictor.mask_fcn_logits.weight",
+        (classes, fpn, 1, 1),
+        "roi_heads.mask_head.predictor.weight",
+        "drop1",
+    )
     yield "roi_heads.mask_predictor.mask_fcn_logits.bias", (classes,), "roi_heads.mask_head.predictor.bias", "drop1"
 
 
@@ -86,7 +121,12 @@ def detectron2_mask_rcnn(width=64, fpn=256, fc=1024, classes=80):
     def conv_norm(theirs, ours_conv, ours_norm, shape):
         yield f"backbone.bottom_up.{theirs}.weight", shape, f"backbone.bottom_up.{ours_conv}.weight", "same"
         for param in TV_NORM:
-            yield f"backbone.bottom_up.{theirs}.norm.{param}", (shape[0],), f"backbone.bottom_up.{ours_norm}.{param}", "same"
+            yield (
+                f"backbone.bottom_up.{theirs}.norm.{param}",
+                (shape[0],),
+                f"backbone.bottom_up.{ours_norm}.{param}",
+                "same",
+            )
 
     for key, shape, target, how in conv_norm("stem.conv1", "conv1", "bn1", (width, 3, 7, 7)):
         yield key, shape, target, "fold" if target.endswith("conv1.weight") else how
@@ -95,14 +135,24 @@ def detectron2_mask_rcnn(width=64, fpn=256, fc=1024, classes=80):
         for k, shape in enumerate([(planes, cin, 1, 1), (planes, planes, 3, 3), (cout, planes, 1, 1)], start=1):
             yield from conv_norm(f"{theirs}.conv{k}", f"{ours}.conv{k}", f"{ours}.bn{k}", shape)
         if block == 0:
-            yield from conv_norm(f"{theirs}.shortcut", f"{ours}.downsample.0", f"{ours}.downsample.1", (cout, cin, 1, 1))
+            yield from conv_norm(
+                f"{theirs}.shortcut", f"{ours}.downsample.0", f"{ours}.downsample.1", (cout, cin, 1, 1)
+            )
     for level in range(2, 6):
         cin = 4 * width * 2 ** (level - 2)
-        for kind, ours, shape in (("lateral", "lateral_convs", (fpn, cin, 1, 1)), ("output", "output_convs", (fpn, fpn, 3, 3))):
+        for kind, ours, shape in (
+            ("lateral", "lateral_convs", (fpn, cin, 1, 1)),
+            ("output", "output_convs", (fpn, fpn, 3, 3)),
+        ):
             yield f"backbone.fpn_{kind}{level}.weight", shape, f"backbone.fpn.{ours}.{level - 2}.weight", "same"
             yield f"backbone.fpn_{kind}{level}.bias", (fpn,), f"backbone.fpn.{ours}.{level - 2}.bias", "same"
     for name, out, k in (("conv", fpn, 3), ("objectness_logits", 3, 1), ("anchor_deltas", 12, 1)):
-        yield f"proposal_generator.rpn_head.{name}.weight", (out, fpn, k, k), f"proposal_generator.head.{name}.weight", "same"
+        yield (
+            f"proposal_generator.rpn_head.{name}.weight",
+            (out, fpn, k, k),
+            f"proposal_generator.head.{name}.weight",
+            "same",
+        )
         yield f"proposal_generator.rpn_head.{name}.bias", (out,), f"proposal_generator.head.{name}.bias", "same"
     yield "proposal_generator.anchor_generator.cell_anchors.0", (3, 4), None, "same"  # in older zoo files
     yield "pixel_mean", (3, 1, 1), None, "same"
@@ -114,7 +164,12 @@ def detectron2_mask_rcnn(width=64, fpn=256, fc=1024, classes=80):
         yield f"roi_heads.box_predictor.{name}.weight", (rows, fc), f"roi_heads.box_predictor.{name}.weight", "same"
         yield f"roi_heads.box_predictor.{name}.bias", (rows,), f"roi_heads.box_predictor.{name}.bias", "same"
     for i in range(4):
-        yield f"roi_heads.mask_head.mask_fcn{i + 1}.weight", (fpn, fpn, 3, 3), f"roi_heads.mask_head.convs.{i}.weight", "same"
+        yield (
+            f"roi_heads.mask_head.mask_fcn{i + 1}.weight",
+            (fpn, fpn, 3, 3),
+            f"roi_heads.mask_head.convs.{i}.weight",
+            "same",
+        )
         yield f"roi_heads.mask_head.mask_fcn{i + 1}.bias", (fpn,), f"roi_heads.mask_head.convs.{i}.bias", "same"
     for name, shape in (("deconv", (fpn, fpn, 2, 2)), ("predictor", (classes, fpn, 1, 1))):
         yield f"roi_heads.mask_head.{name}.weight", shape, f"roi_heads.mask_head.{name}.weight", "same"
@@ -137,7 +192,11 @@ def caffe2_resnet50(width=64):
         yield key, shape, target, "fold" if key == "conv1_w" else how
     for stage, block, cin, planes, cout in _stages(width):
         theirs, ours = f"res{stage + 1}_{block}", f"layer{stage}.{block}"
-        for k, letter, shape in ((1, "a", (planes, cin, 1, 1)), (2, "b", (planes, planes, 3, 3)), (3, "c", (cout, planes, 1, 1))):
+        for k, letter, shape in (
+            (1, "a", (planes, cin, 1, 1)),
+            (2, "b", (planes, planes, 3, 3)),
+            (3, "c", (cout, planes, 1, 1)),
+        ):
             yield from conv_bn(f"{theirs}_branch2{letter}", f"{ours}.conv{k}", f"{ours}.bn{k}", shape)
         if block == 0:
             yield from conv_bn(f"{theirs}_branch1", f"{ours}.downsample.0", f"{ours}.downsample.1", (cout, cin, 1, 1))

@@ -86,7 +86,9 @@ def test_mismatched_or_missing_weights_file_names_the_file(tmp_path):
     torch.save(ResNet(34, base_channels=8).state_dict(), path)
     cfg = DetectorConfig.tiny()
     cfg.backbone.resnet = ResNetConfig(depth=18, base_channels=8)
-    with pytest.raises(WeightsError, match="resnet34-wrong.pth: 'layer1.2.conv1.weight' maps to 'backbone.bottom_up.layer1.2"):
+    with pytest.raises(
+        WeightsError, match="resnet34-wrong.pth: 'layer1.2.conv1.weight' maps to 'backbone.bottom_up.layer1.2"
+    ):
         init_detector(MaskRCNN(2, cfg), path)
     with pytest.raises(WeightsError, match="nowhere.pth does not exist"):
         init_detector(MaskRCNN(2, cfg), tmp_path / "nowhere.pth")

@@ -1,4 +1,5 @@
 """Device-agnostic code paths on CUDA (skipped on CPU-only hosts)."""
+
 import pytest
 import torch
 

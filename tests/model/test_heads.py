@@ -32,8 +32,10 @@ def test_multiscale_pooler_pools_each_box_from_its_level():
         f"p{i + 2}": torch.randn(2, 3, 64 // s, 64 // s, generator=generator, dtype=torch.float64)
         for i, s in enumerate(strides)
     }
-    boxes = [torch.tensor([[2.0, 3.0, 14.0, 11.0], [0.0, 0.0, 60.0, 50.0]], dtype=torch.float64),
-             torch.tensor([[10.0, 12.0, 40.0, 42.0]], dtype=torch.float64)]
+    boxes = [
+        torch.tensor([[2.0, 3.0, 14.0, 11.0], [0.0, 0.0, 60.0, 50.0]], dtype=torch.float64),
+        torch.tensor([[10.0, 12.0, 40.0, 42.0]], dtype=torch.float64),
+    ]
     pooler = MultiScaleRoIAlign(
         ["p2", "p3", "p4"], strides, output_size=3, sampling_ratio=2, canonical_box_size=32, canonical_level=3
     )

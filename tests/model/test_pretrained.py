@@ -1,4 +1,5 @@
 """model.init_weights: checkpoints written in each upstream key layout land where they should."""
+
 import pickle
 import warnings
 
@@ -80,7 +81,12 @@ def check_every_tensor_landed(model, entries, tensors, report):
 
 FULL_LAYOUTS = {
     "torchvision_maskrcnn_coco_pth": (lambda: list(torchvision_maskrcnn()), "torchvision", False, "model.pth"),
-    "torchvision_maskrcnn_new_names": (lambda: list(torchvision_maskrcnn(new_names=True)), "torchvision", False, "new.pth"),
+    "torchvision_maskrcnn_new_names": (
+        lambda: list(torchvision_maskrcnn(new_names=True)),
+        "torchvision",
+        False,
+        "new.pth",
+    ),
     "detectron2_mask_rcnn_pkl": (lambda: list(detectron2_mask_rcnn()), "detectron2", True, "model_final.pkl"),
 }
 
@@ -107,7 +113,11 @@ def test_class_layers_that_do_not_fit_are_reinitialised_and_reported(tmp_path, f
     model = MaskRCNN(3, detector_config(**small, mask=16, stride_in_1x1=fmt == "detectron2"))
     before = {k: v.clone() for k, v in model.state_dict().items()}
     report = init_detector(model, path)
-    class_keys = {f"roi_heads.{m}.{p}" for m in ("box_predictor.cls_score", "box_predictor.bbox_pred", "mask_head.predictor") for p in ("weight", "bias")}
+    class_keys = {
+        f"roi_heads.{m}.{p}"
+        for m in ("box_predictor.cls_score", "box_predictor.bbox_pred", "mask_head.predictor")
+        for p in ("weight", "bias")
+    }
     assert {entry.split(":")[0] for entry in report.reinitialised} == class_keys
     state = model.state_dict()
     for key in class_keys:
@@ -135,7 +145,13 @@ def test_imagenet_backbones_fill_the_resnet_and_keep_the_rest(tmp_path, layout):
     for key, value in model.state_dict().items():
         if not key.startswith("backbone.bottom_up."):
             assert torch.equal(value, before[key]), key
-    assert set(report.kept) == {"backbone.fpn", "proposal_generator", "roi_heads.box_head", "roi_heads.box_predictor", "roi_heads.mask_head"}
+    assert set(report.kept) == {
+        "backbone.fpn",
+        "proposal_generator",
+        "roi_heads.box_head",
+        "roi_heads.box_predictor",
+        "roi_heads.mask_head",
+    }
 
 
 def test_msra_stem_computes_what_it_computed_on_bgr_0_255_inputs(tmp_path):
@@ -146,8 +162,13 @@ def test_msra_stem_computes_what_it_computed_on_bgr_0_255_inputs(tmp_path):
     rgb = torch.rand(1, 3, 33, 47)
     bgr255 = rgb.flip(1) * 255 - torch.tensor(CAFFE2_MEAN_BGR)[None, :, None, None]
     caffe2 = F.conv2d(bgr255.double(), tensors["conv1_w"].double(), stride=2, padding=3)
-    caffe2 = caffe2 * tensors["res_conv1_bn_s"].double()[None, :, None, None] + tensors["res_conv1_bn_b"].double()[None, :, None, None]
-    normalised = (rgb - torch.tensor(IMAGENET_MEAN)[None, :, None, None]) / torch.tensor(IMAGENET_STD)[None, :, None, None]
+    caffe2 = (
+        caffe2 * tensors["res_conv1_bn_s"].double()[None, :, None, None]
+        + tensors["res_conv1_bn_b"].double()[None, :, None, None]
+    )
+    normalised = (rgb - torch.tensor(IMAGENET_MEAN)[None, :, None, None]) / torch.tensor(IMAGENET_STD)[
+        None, :, None, None
+    ]
     resnet = model.backbone.bottom_up
     ours = resnet.bn1(resnet.conv1(normalised))
     torch.testing.assert_close(ours.double(), caffe2, rtol=1e-4, atol=1e-3)  # borders included (zero = mean in both)
@@ -167,11 +188,17 @@ def test_frozen_stem_stays_bit_identical_through_a_training_step(tmp_path):
     sum(model(images, targets=targets).values()).backward()
     optimizer.step()
     after = model.state_dict()
-    frozen = [k for k in after if k.startswith(("backbone.bottom_up.conv1", "backbone.bottom_up.bn1", "backbone.bottom_up.layer1."))]
+    frozen = [
+        k
+        for k in after
+        if k.startswith(("backbone.bottom_up.conv1", "backbone.bottom_up.bn1", "backbone.bottom_up.layer1."))
+    ]
     assert len(frozen) > 40
     for key in frozen:
         assert torch.equal(after[key], loaded[key]), key
-    assert not torch.equal(after["backbone.bottom_up.layer2.0.conv1.weight"], loaded["backbone.bottom_up.layer2.0.conv1.weight"])
+    assert not torch.equal(
+        after["backbone.bottom_up.layer2.0.conv1.weight"], loaded["backbone.bottom_up.layer2.0.conv1.weight"]
+    )
     assert not torch.equal(after["roi_heads.box_head.fcs.0.weight"], loaded["roi_heads.box_head.fcs.0.weight"])
 
 
@@ -182,23 +209,33 @@ def test_unknown_keys_shape_mismatches_and_gaps_are_errors_naming_the_key(tmp_pa
 
     extra = entries + [("roi_heads.keypoint_head.conv_fcn1.weight", (4, 4), None, "same")]
     path, _ = write_checkpoint(tmp_path, extra, "detectron2", "extra.pkl")
-    with pytest.raises(WeightsError, match=r"extra.pkl: key 'roi_heads.keypoint_head.conv_fcn1.weight' maps to nothing"):
+    with pytest.raises(
+        WeightsError, match=r"extra.pkl: key 'roi_heads.keypoint_head.conv_fcn1.weight' maps to nothing"
+    ):
         init_detector(model(), path)
 
     path, _ = write_checkpoint(tmp_path, entries, "detectron2", "ok.pkl")
-    with pytest.raises(WeightsError, match=r"ok.pkl: 'backbone.fpn_lateral2.weight' has shape \(16, 32, 1, 1\) but 'backbone.fpn.lateral_convs.0.weight' is \(32, 32, 1, 1\)"):
+    with pytest.raises(
+        WeightsError,
+        match=r"ok.pkl: 'backbone.fpn_lateral2.weight' has shape \(16, 32, 1, 1\) but 'backbone.fpn.lateral_convs.0.weight' is \(32, 32, 1, 1\)",
+    ):
         init_detector(model(fpn=32), path)
     with pytest.raises(WeightsError, match=r"stride on the first 1x1 conv.*stride_in_1x1=true"):
         init_detector(model(stride_in_1x1=False), path)
 
     gap = [e for e in entries if e[0] != "roi_heads.mask_head.mask_fcn3.bias"]
     path, _ = write_checkpoint(tmp_path, gap, "detectron2", "gap.pkl")
-    with pytest.raises(WeightsError, match=r"gap.pkl lacks 1 tensor\(s\) of parts it provides: roi_heads.mask_head.convs.2.bias"):
+    with pytest.raises(
+        WeightsError, match=r"gap.pkl lacks 1 tensor\(s\) of parts it provides: roi_heads.mask_head.convs.2.bias"
+    ):
         init_detector(model(), path)
 
     resnet101 = entries + [("backbone.bottom_up.res4.6.conv1.weight", (16, 128, 1, 1), None, "same")]
     path, _ = write_checkpoint(tmp_path, resnet101, "detectron2", "r101.pkl")
-    with pytest.raises(WeightsError, match=r"'backbone.bottom_up.res4.6.conv1.weight' maps to 'backbone.bottom_up.layer3.6.conv1.weight', which this model does not have"):
+    with pytest.raises(
+        WeightsError,
+        match=r"'backbone.bottom_up.res4.6.conv1.weight' maps to 'backbone.bottom_up.layer3.6.conv1.weight', which this model does not have",
+    ):
         init_detector(model(), path)
 
     not_weights = tmp_path / "classes.pkl"
@@ -229,8 +266,11 @@ def test_usl_model_starts_from_init_weights_and_checkpoint_loading_skips_them(tm
     path, tensors = write_checkpoint(tmp_path, entries, "detectron2", "coco_small.pkl")
     detector = detector_config(width=8, fpn=16, fc=32, mask=16, stride_in_1x1=None)
     cfg = ModelConfig(
-        detector=detector, categories=("chair", "table"), layout_range=LayoutRange(1.0, 5.0, 0.1, 1.0),
-        shape=ShapeHeadConfig(ico_level=1, num_stages=1, hidden_dim=16), layout=LayoutHeadConfig(fc_dim=16),
+        detector=detector,
+        categories=("chair", "table"),
+        layout_range=LayoutRange(1.0, 5.0, 0.1, 1.0),
+        shape=ShapeHeadConfig(ico_level=1, num_stages=1, hidden_dim=16),
+        layout=LayoutHeadConfig(fc_dim=16),
         init_weights=str(path),
     )
     model = USLModel(cfg)

@@ -1,5 +1,6 @@
 """Table 1's loss switches: ``loss.weights.dist`` (the "w/o l_dist" row), ``loss.iou_threshold``
 (the IoU gate of Eq. 4) and ``loss.xent_gate``, and ``loss.weights.soft_iou``, on geometrically exact synthetic scenes."""
+
 from dataclasses import replace
 
 import pytest
@@ -37,7 +38,9 @@ def test_dist_weight_scales_l_dist_and_zero_removes_its_gradient_exactly(setup):
     loss, sample, verts, faces = setup
     verts = verts * 1.15  # a depth error: l_dist is far from 0 and has a gradient
     full, full_xent_grad = _grad(_with(loss, xent_gate="iou"), verts, faces, sample, "xent")
-    half = multiview_silhouette_loss(verts, faces, [sample], [len(verts)], _with(loss, weights={"dist": 0.5}, xent_gate="iou"))
+    half = multiview_silhouette_loss(
+        verts, faces, [sample], [len(verts)], _with(loss, weights={"dist": 0.5}, xent_gate="iou")
+    )
     torch.testing.assert_close(half.dist, 0.5 * full.dist)
     torch.testing.assert_close(half.xent, full.xent)
     # dist=0 with the paper's gate kept: L_3D is exactly the gated l_xent part of the full loss
@@ -66,7 +69,9 @@ def test_without_l_dist_the_gate_rewards_leaving_it(setup):
             scale = torch.tensor(s0, requires_grad=True)
             out = multiview_silhouette_loss(verts * scale, faces, [sample], [len(verts)], cfg)
             (grad,) = torch.autograd.grad(out.l3d, scale)
-            curves[mode].append((out.l3d.item(), grad.item(), out.stats["iou_pass_views"].item(), out.stats["xent_gate"].item()))
+            curves[mode].append(
+                (out.l3d.item(), grad.item(), out.stats["iou_pass_views"].item(), out.stats["xent_gate"].item())
+            )
     (far_near, g_near, pass_near, _), (close, _, pass_close, _), (far_deep, g_deep, pass_deep, _) = curves["iou"]
     assert pass_near == pass_deep == 0.0 and pass_close > 0.4
     assert far_near < 0.1 * close and far_deep < 0.1 * close  # the gated objective prefers the wrong depth
@@ -126,7 +131,9 @@ def test_iou_threshold_decides_which_pairs_pass_the_gate(setup):
 
 def _soft_iou_part(loss, sample, verts, faces, weight):
     """L_3D's soft-IoU part alone: the l_xent part with the term minus the l_xent part without it."""
-    with_term = multiview_silhouette_loss(verts, faces, [sample], [len(verts)], _with(loss, weights={"soft_iou": weight}))
+    with_term = multiview_silhouette_loss(
+        verts, faces, [sample], [len(verts)], _with(loss, weights={"soft_iou": weight})
+    )
     without = multiview_silhouette_loss(verts, faces, [sample], [len(verts)], _with(loss, weights={"soft_iou": 0.0}))
     torch.testing.assert_close(with_term.dist, without.dist)
     assert "l_soft_iou" in with_term.stats and "l_soft_iou" not in without.stats
@@ -146,7 +153,9 @@ def test_soft_iou_joins_l_xent_under_its_gate_and_pulls_a_shrunk_mesh_out(setup)
     (slope,) = torch.autograd.grad(one, scale)
     assert one.item() > 0 and slope.item() < 0  # descent grows the mesh
     mean_over_pairs = [  # the logged statistic covers every pair, gated or not: the truth scores better
-        multiview_silhouette_loss(v, faces, [sample], [len(v)], _with(loss, weights={"soft_iou": 1.0})).stats["l_soft_iou"]
+        multiview_silhouette_loss(v, faces, [sample], [len(v)], _with(loss, weights={"soft_iou": 1.0})).stats[
+            "l_soft_iou"
+        ]
         for v in (verts, shrunk.detach())
     ]
     assert mean_over_pairs[0] < mean_over_pairs[1]

@@ -1,4 +1,5 @@
 """``loss.supervision=3d``: Mesh R-CNN's losses against the objects table's true meshes."""
+
 import json
 import shutil
 from dataclasses import replace
@@ -17,8 +18,16 @@ from test_usl_model import _true_meshes  # noqa: E402  (same folder: an independ
 
 @pytest.fixture(scope="module")
 def setup(synthetic_root):
-    cfg = load_config("tiny", [f"data.root={synthetic_root}", "data.max_size=0", "loss.supervision=3d",
-                               "loss.mesh3d.num_samples=500", "data.flip_prob=0"])
+    cfg = load_config(
+        "tiny",
+        [
+            f"data.root={synthetic_root}",
+            "data.max_size=0",
+            "loss.supervision=3d",
+            "loss.mesh3d.num_samples=500",
+            "data.flip_prob=0",
+        ],
+    )
     records = RecordsDataset(synthetic_root, "train")
     cfg.model.categories = tuple(c["name"] for c in records.categories)
     cfg.model.layout_range = LayoutRange(**records.manifest["layout"])
@@ -91,6 +100,8 @@ def test_3d_supervision_needs_an_objects_table_and_a_mesh_per_object(setup, tmp_
     records = RecordsDataset(synthetic_root, "train")
     dataset = MultiViewDataset(records, cfg.data, categories, with_true_meshes=True)
     scene_id = dataset.items[0][0]
-    records.read_objects = lambda s: [o for o in RecordsDataset(synthetic_root, "train").read_objects(s) if o["instance_id"] != 2]
+    records.read_objects = lambda s: [
+        o for o in RecordsDataset(synthetic_root, "train").read_objects(s) if o["instance_id"] != 2
+    ]
     with pytest.raises(UslError, match=f"scene '{scene_id}': instance 2 has no row in the objects table"):
         dataset[SampleKey(0, 0)]

@@ -1,5 +1,6 @@
 """Scene-Shapes' Mesh R-CNN (ShapeNet, sphere-init) architecture: plain R50, res2..res5 per vertex,
 128-d stages that pass vertex features on, ico-sphere level 4, ImageNet init from a local file."""
+
 import pytest
 import torch
 
@@ -12,7 +13,7 @@ from usl.model.usl_model import USLModel
 from usl.records import RecordsDataset
 
 CATEGORIES = ("chair", "sofa", "table")
-RANGE = LayoutRange(z0=1.4, z1=2.0, rho0=0.1, rho1=1.0)  # DESIGN.md §4, Scene-Shapes
+RANGE = LayoutRange(z0=1.4, z1=2.0, rho0=0.1, rho1=1.0)  # docs/design.md §4, Scene-Shapes
 
 
 def _linear_field(height, width, stride, scale):
@@ -55,8 +56,17 @@ def test_passed_features_widen_the_next_stage_and_carry_gradient(sampler):
     grads = {}
     for passing in (False, True):
         torch.manual_seed(0)
-        cfg = ShapeHeadConfig(ico_level=1, num_stages=2, num_graph_convs=2, hidden_dim=8, features=("res2", "res3"),
-                              pass_features=passing, sampler=sampler, vertalign_resolution=7, graph_conv_init="kaiming")
+        cfg = ShapeHeadConfig(
+            ico_level=1,
+            num_stages=2,
+            num_graph_convs=2,
+            hidden_dim=8,
+            features=("res2", "res3"),
+            pass_features=passing,
+            sampler=sampler,
+            vertalign_resolution=7,
+            graph_conv_init="kaiming",
+        )
         head = ShapeHead(shapes, cfg)
         assert head.stages[0].bottleneck.in_features == 10  # 4 + 6 sampled channels
         assert [g.w0.in_features for g in head.stages[0].gconvs] == [8 + 3, 8 + 3]
@@ -91,7 +101,10 @@ def test_scene_shapes_recipe_builds_mesh_rcnns_shapenet_model(recipe_model):
     backbone = model.detector.backbone
     assert not hasattr(backbone, "fpn")
     assert {k: (s.channels, s.stride) for k, s in backbone.output_shape().items()} == {
-        "res2": (256, 4), "res3": (512, 8), "res4": (1024, 16), "res5": (2048, 32)
+        "res2": (256, 4),
+        "res3": (512, 8),
+        "res4": (1024, 16),
+        "res5": (2048, 32),
     }
     head = model.shape_head
     verts, faces = ico_sphere(4)
@@ -129,8 +142,12 @@ def test_scene_shapes_recipe_trains_and_detects_on_a_small_image(recipe_model, s
     resnet = model.detector.backbone.bottom_up
     # Offsets start at zero (Mesh R-CNN's init), so at step 0 the shape loss reaches the offset
     # layers only; the layout head's loss reaches the backbone through res4.
-    for param in (resnet.conv1.weight, resnet.layer3[-1].conv3.weight, model.layout_head.z_pred.weight,
-                  *(stage.offset.weight for stage in model.shape_head.stages)):
+    for param in (
+        resnet.conv1.weight,
+        resnet.layer3[-1].conv3.weight,
+        model.layout_head.z_pred.weight,
+        *(stage.offset.weight for stage in model.shape_head.stages),
+    ):
         assert param.grad is not None and param.grad.abs().sum() > 0
     assert all(p.grad is None for p in model.detector.roi_heads.parameters())  # frozen without L_2D
     (pred,) = model.predict([sample.frame], mode="gt_boxes")
@@ -146,8 +163,10 @@ def test_imagenet_init_from_a_local_torchvision_resnet50_file(tmp_path, capsys):
     small; its keys and the code path are the full recipe's.)"""
     generator = torch.Generator().manual_seed(0)
     reference = USLModel(_small_recipe().model, load_init_weights=False).detector.backbone.bottom_up
-    state = {k: torch.randn(v.shape, generator=generator) if v.is_floating_point() else v
-             for k, v in reference.state_dict().items()}
+    state = {
+        k: torch.randn(v.shape, generator=generator) if v.is_floating_point() else v
+        for k, v in reference.state_dict().items()
+    }
     state = {k: (v.abs() + 0.5 if k.endswith("running_var") else v) for k, v in state.items()}
     path = tmp_path / "resnet50-0676ba61.pth"
     torch.save(state, path)

@@ -1,4 +1,5 @@
 """Layout head, shape head, GraphConv and vertex samplers against independent oracles."""
+
 import numpy as np
 import pytest
 import torch
@@ -104,7 +105,9 @@ def test_cube_projection_equals_the_frustum_homography_projection():
     K = torch.tensor([[300.0, 2.0, 160.0], [0.0, 310.0, 120.0], [0.001, 0.002, 1.0]], dtype=torch.float64)
     boxes = torch.tensor([[40.0, 30.0, 140.0, 90.0], [100.0, 100.0, 120.0, 180.0]], dtype=torch.float64)
     verts = torch.rand(2, 50, 3, dtype=torch.float64) * 2 - 1
-    cam = cube_to_frustum(verts, boxes, K, torch.tensor([2.0, 4.0], dtype=torch.float64), torch.tensor([0.5, 1.0], dtype=torch.float64))
+    cam = cube_to_frustum(
+        verts, boxes, K, torch.tensor([2.0, 4.0], dtype=torch.float64), torch.tensor([0.5, 1.0], dtype=torch.float64)
+    )
     uv, _ = project(cam, K)
     assert torch.allclose(project_cube_to_image(verts, boxes), uv, atol=1e-8)
 

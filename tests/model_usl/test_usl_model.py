@@ -1,4 +1,5 @@
 """The full model and its multi-view loss on geometrically exact synthetic scenes."""
+
 from dataclasses import replace
 
 import numpy as np
@@ -25,7 +26,9 @@ def _true_meshes(records, dataset, sample, index):
     objects = {o["instance_id"]: o for o in records.read_objects(scene_id)}
     to_input = torch.linalg.inv(sample.views[0].cam_to_world)
     ids = sample.frame.instance_ids[sample.object_rows].tolist()
-    verts = torch.stack([transform_points(torch.tensor(np.asarray(objects[i]["vertices"]), dtype=torch.float64), to_input) for i in ids])
+    verts = torch.stack(
+        [transform_points(torch.tensor(np.asarray(objects[i]["vertices"]), dtype=torch.float64), to_input) for i in ids]
+    )
     return verts.float(), torch.tensor(np.asarray(objects[ids[0]]["faces"]), dtype=torch.int64)
 
 
@@ -40,9 +43,14 @@ def test_true_depth_beats_a_depth_error_only_other_views_can_see(setup):
         sample = dataset[SampleKey(index, 0)]
         verts, faces = _true_meshes(records, dataset, sample, index)
         counts = [len(verts)]
-        dist = {s: multiview_silhouette_loss(verts * s, faces, [sample], counts, cfg.loss).stats["l_dist"] for s in (0.8, 1.0, 1.3)}
+        dist = {
+            s: multiview_silhouette_loss(verts * s, faces, [sample], counts, cfg.loss).stats["l_dist"]
+            for s in (0.8, 1.0, 1.3)
+        }
         assert dist[1.0] < 0.5 * dist[1.3] and dist[1.0] < 0.5 * dist[0.8]
-        assert multiview_silhouette_loss(verts, faces, [sample], counts, cfg.loss).stats["xent_gate"] > 0.6  # occlusion lowers some IoUs
+        assert (
+            multiview_silhouette_loss(verts, faces, [sample], counts, cfg.loss).stats["xent_gate"] > 0.6
+        )  # occlusion lowers some IoUs
         only_input = replace(sample, views=sample.views[:1])
         a = multiview_silhouette_loss(verts, faces, [only_input], counts, cfg.loss).l3d
         b = multiview_silhouette_loss(verts * 1.3, faces, [only_input], counts, cfg.loss).l3d
@@ -64,7 +72,9 @@ def test_loss_is_a_per_image_mean_and_ignores_absent_objects(setup):
     garbage = replace(absent, masks=torch.ones_like(view.masks))
     garbage.masks[1] = view.masks[1]
     losses = [
-        multiview_silhouette_loss(verts[0], faces, [replace(samples[0], views=[samples[0].views[0], v])], [2], cfg.loss).l3d
+        multiview_silhouette_loss(
+            verts[0], faces, [replace(samples[0], views=[samples[0].views[0], v])], [2], cfg.loss
+        ).l3d
         for v in (absent, garbage)
     ]
     assert torch.isclose(losses[0], losses[1])
@@ -76,7 +86,16 @@ def test_forward_losses_and_gradients(setup):
     model = USLModel(cfg.model, cfg.loss)
     samples = [dataset[SampleKey(i, 0)] for i in (0, 3)]
     losses = model(samples)
-    expected = {"det/loss_rpn_cls", "det/loss_rpn_loc", "det/loss_cls", "det/loss_box_reg", "det/loss_mask", "l3d", "edge", "loss"}
+    expected = {
+        "det/loss_rpn_cls",
+        "det/loss_rpn_loc",
+        "det/loss_cls",
+        "det/loss_box_reg",
+        "det/loss_mask",
+        "l3d",
+        "edge",
+        "loss",
+    }
     assert expected <= set(losses)
     assert all(torch.isfinite(v) for v in losses.values())
     parts = sum(v for k, v in losses.items() if not k.startswith("stat/") and k != "loss")
@@ -91,8 +110,11 @@ def test_sample_without_objects_still_trains_every_head(setup):
     cfg, _, dataset = setup
     model = USLModel(cfg.model, cfg.loss)
     sample = dataset[SampleKey(2, 0)]
-    empty = replace(sample, object_rows=sample.object_rows[:0],
-                    views=[replace(v, masks=v.masks[:0], present=v.present[:0]) for v in sample.views])
+    empty = replace(
+        sample,
+        object_rows=sample.object_rows[:0],
+        views=[replace(v, masks=v.masks[:0], present=v.present[:0]) for v in sample.views],
+    )
     losses = model([empty])
     assert losses["l3d"].item() == 0.0
     losses["loss"].backward()
@@ -216,7 +238,9 @@ def test_shape_head_can_sample_the_input_image_itself(setup):
     x = 2 * (cols + 0.5 - box[0]) / (box[2] - box[0]) - 1
     y = 2 * (rows + 0.5 - box[1]) / (box[3] - box[1]) - 1
     verts = torch.stack([x, y, torch.zeros_like(x)], dim=-1)[None]
-    sampled = roimap_features([features[name] for name in shape_cfg.features], model.shape_head.strides, verts, box[None], torch.tensor([0]))
+    sampled = roimap_features(
+        [features[name] for name in shape_cfg.features], model.shape_head.strides, verts, box[None], torch.tensor([0])
+    )
     torch.testing.assert_close(sampled[0, :, -3:], normalised[:, rows, cols].T, atol=1e-5, rtol=0)
     # without it, the features the detector and the heads see are the backbone's alone
     backbone_only = replace(cfg.model, shape=replace(cfg.model.shape, features=("p2",)))

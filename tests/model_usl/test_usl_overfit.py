@@ -1,6 +1,7 @@
 """Training on one scene without 3D supervision makes the predicted 3D objects explain the
 other views (Mask IoU against true masks there, z-buffer render, not the training renderer),
 and the learned *shapes* explain them better than spheres at the same learned layout."""
+
 from dataclasses import replace
 
 import numpy as np
@@ -19,9 +20,21 @@ from usl.records import RecordsDataset
 from usl.render import rasterize_hard
 
 OVERRIDES = [
-    "loss.weights.mu_2d=0", "loss.weights.offset_l2=0.05", "optim.lr=3e-3", "optim.max_iter=60", "train.batch_size=3", "train.cpu_threads=1",
-    "data.num_views=3", "data.max_size=0", "model.shape.num_stages=1", "loss.mesh_points=200", "loss.mask_points=200",
-    "loss.render.resolution=32", "train.checkpoint_every=1000", "train.log_every=10", "data.flip_prob=0",
+    "loss.weights.mu_2d=0",
+    "loss.weights.offset_l2=0.05",
+    "optim.lr=3e-3",
+    "optim.max_iter=60",
+    "train.batch_size=3",
+    "train.cpu_threads=1",
+    "data.num_views=3",
+    "data.max_size=0",
+    "model.shape.num_stages=1",
+    "loss.mesh_points=200",
+    "loss.mask_points=200",
+    "loss.render.resolution=32",
+    "train.checkpoint_every=1000",
+    "train.log_every=10",
+    "data.flip_prob=0",
 ]
 
 
@@ -56,8 +69,13 @@ def other_view_iou(rows_and_predictions) -> float:
             view = decode_target_view(other, frame.instance_ids)
             verts = transform_points(pred.verts.double(), relative_transform(frame.cam_to_world, view.cam_to_world))
             packed = (faces[None] + verts.shape[1] * torch.arange(len(verts))[:, None, None]).reshape(-1, 3)
-            render = rasterize_hard(verts.reshape(-1, 3), packed, torch.arange(len(verts)).repeat_interleave(len(faces)),
-                                    view.K.double(), *view.size)
+            render = rasterize_hard(
+                verts.reshape(-1, 3),
+                packed,
+                torch.arange(len(verts)).repeat_interleave(len(faces)),
+                view.K.double(),
+                *view.size,
+            )
             for k in torch.nonzero(view.present).squeeze(1).tolist():
                 inter = (render.masks[k] & view.masks[k]).sum().item()
                 union = (render.masks[k] | view.masks[k]).sum().item()
@@ -67,7 +85,9 @@ def other_view_iou(rows_and_predictions) -> float:
 
 @pytest.fixture(scope="module")
 def one_scene(tmp_path_factory):
-    return build_synthetic_records(tmp_path_factory.mktemp("one_scene") / "records", num_scenes=1, num_views=6, size=48, val_scenes=0, seed=7)
+    return build_synthetic_records(
+        tmp_path_factory.mktemp("one_scene") / "records", num_scenes=1, num_views=6, size=48, val_scenes=0, seed=7
+    )
 
 
 def test_overfitting_one_scene_learns_layout_and_shape_beyond_the_sphere(one_scene, tmp_path):

@@ -13,7 +13,10 @@ def fake_v2(tmp_path_factory):
     from pipelines.common import BuildOptions, ShardPlan, run_build
 
     root = tmp_path_factory.mktemp("fake_v2") / "ds"
-    plans = [ShardPlan("train", 0, [("s0", 0, 3)]), ShardPlan("train", 1, [("s/1", 1, 4)]),
-             ShardPlan("val", 0, [("s2", 2, 2)])]
+    plans = [
+        ShardPlan("train", 0, [("s0", 0, 3)]),
+        ShardPlan("train", 1, [("s/1", 1, 4)]),
+        ShardPlan("val", 0, [("s2", 2, 2)]),
+    ]
     run_build(BuildOptions(root, progress=False), SPEC, {}, plans, build_fake_scene, {"command": "test"})
     return root

@@ -1,4 +1,5 @@
 """A tiny synthetic dataset builder for records tests: deterministic scenes of discs on noise."""
+
 from __future__ import annotations
 
 from typing import Any, Iterator
@@ -35,8 +36,10 @@ def fake_frames(scene_id: str, seed: int, num_views: int) -> Iterator[dict[str, 
 
 def fake_objects(scene_id: str, seed: int) -> list[dict[str, Any]]:
     tri = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], np.float32) * (1 + seed % 3)
-    return [object_row(scene_id, 7, 1, f"disc-{seed}", tri, np.array([[0, 1, 2]])),
-            object_row(scene_id, 9, 2, f"square-{seed}", tri + 1, np.array([[0, 2, 1]]))]
+    return [
+        object_row(scene_id, 7, 1, f"disc-{seed}", tri, np.array([[0, 1, 2]])),
+        object_row(scene_id, 9, 2, f"square-{seed}", tri + 1, np.array([[0, 2, 1]])),
+    ]
 
 
 def build_fake_scene(unit: tuple[str, int, int]) -> SceneRecord:

@@ -3,6 +3,7 @@
 It waits until N such processes are ready (files in READY_DIR), so that they really build at the
 same time, then builds slowly enough to overlap, and prints its summary as JSON.
 """
+
 import json
 import os
 import sys
@@ -20,7 +21,7 @@ NUM_SHARDS = 12
 
 def plans():
     units = [(f"scene{i:03d}", i, 2 + i % 3) for i in range(2 * NUM_SHARDS)]
-    return [ShardPlan("train", k, units[2 * k:2 * k + 2]) for k in range(NUM_SHARDS)]
+    return [ShardPlan("train", k, units[2 * k : 2 * k + 2]) for k in range(NUM_SHARDS)]
 
 
 def slow_scene(unit):
@@ -34,8 +35,14 @@ def main(out: str, version: str, ready_dir: str, count: str) -> int:
     while len(list(ready.iterdir())) < int(count):
         time.sleep(0.01)
     try:
-        summary = run_build(BuildOptions(Path(out), progress=False), fake_scenes.SPEC, {"v": int(version)}, plans(),
-                            slow_scene, {"command": "test"})
+        summary = run_build(
+            BuildOptions(Path(out), progress=False),
+            fake_scenes.SPEC,
+            {"v": int(version)},
+            plans(),
+            slow_scene,
+            {"command": "test"},
+        )
     except UslError as exc:
         print(json.dumps({"error": str(exc)}))
         return 2

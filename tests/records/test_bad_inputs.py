@@ -1,5 +1,6 @@
 """Every bad input of issue 12 gives one clear line naming the file (and scene, view), loses
 nothing, and no command that did not do its work reports success. Table-driven: one row per input."""
+
 from __future__ import annotations
 
 import json
@@ -41,8 +42,10 @@ def broken_scene(unit):
 @pytest.fixture(scope="module")
 def dataset(tmp_path_factory):
     root = tmp_path_factory.mktemp("bad") / "ds"
-    plans = [ShardPlan("train", 0, [("rle", 0, 2), ("s1", 1, 3), ("s2", 2, 2)]),
-             ShardPlan("val", 0, [("empty", 3, 0)])]  # val: a split whose only scene was skipped
+    plans = [
+        ShardPlan("train", 0, [("rle", 0, 2), ("s1", 1, 3), ("s2", 2, 2)]),
+        ShardPlan("val", 0, [("empty", 3, 0)]),
+    ]  # val: a split whose only scene was skipped
     spec = {**SPEC, "baselines": {"random_depth": {"z": [1.4, 2.0], "rho": [0.1, 1.0]}}}
     run_build(BuildOptions(root, progress=False), spec, {}, plans, broken_scene, {"command": "test"})
     return root
@@ -57,6 +60,7 @@ def edit_manifest(root: Path, edit: Callable[[dict], object]) -> None:
 def set_file(path: str) -> Callable[[dict], None]:
     def edit(manifest: dict) -> None:
         manifest["splits"]["train"]["shards"][0]["frames"]["file"] = path
+
     return edit
 
 
@@ -102,42 +106,100 @@ def train_sample(root, index=0):
 
 
 def fake_build(out):
-    return run_build(BuildOptions(out, progress=False), SPEC, {}, [ShardPlan("train", 0, [("a", 0, 1)])],
-                     build_fake_scene, {})
+    return run_build(
+        BuildOptions(out, progress=False), SPEC, {}, [ShardPlan("train", 0, [("a", 0, 1)])], build_fake_scene, {}
+    )
 
 
 CASES = [
-    Case("manifest is a JSON list", lambda r, t: (edit_manifest(r, lambda m: [m]), ("validate", r))[1],
-         cli(records_main), "expected a JSON object, found a list", code=1),
-    Case("manifest is a JSON list (info)", lambda r, t: (edit_manifest(r, lambda m: [m]), ("info", r))[1],
-         cli(records_main), "expected a JSON object, found a list"),
-    Case("manifest without splits", lambda r, t: (edit_manifest(r, lambda m: m.pop("splits") and None), (r,))[1],
-         reader, "no 'splits' object"),
-    Case("shard path outside the folder (validate)", lambda r, t: (edit_manifest(r, set_file("../outside/x.parquet")),
-         ("validate", r))[1], cli(records_main), "'../outside/x.parquet' points outside the dataset folder", code=1),
-    Case("shard path outside the folder (reader)", lambda r, t: (edit_manifest(r, set_file("../outside/x.parquet")),
-         (r,))[1], reader, "points outside the dataset folder"),
-    Case("absolute shard path (info)", lambda r, t: (edit_manifest(r, set_file(str(r / SHARD))), ("info", r))[1],
-         cli(records_main), "points outside the dataset folder"),
-    Case("--out is a file", lambda r, t: ((t / "file").write_text("x"), (t / "file",))[1], fake_build,
-         "--out is a file, not a folder"),
+    Case(
+        "manifest is a JSON list",
+        lambda r, t: (edit_manifest(r, lambda m: [m]), ("validate", r))[1],
+        cli(records_main),
+        "expected a JSON object, found a list",
+        code=1,
+    ),
+    Case(
+        "manifest is a JSON list (info)",
+        lambda r, t: (edit_manifest(r, lambda m: [m]), ("info", r))[1],
+        cli(records_main),
+        "expected a JSON object, found a list",
+    ),
+    Case(
+        "manifest without splits",
+        lambda r, t: (edit_manifest(r, lambda m: m.pop("splits") and None), (r,))[1],
+        reader,
+        "no 'splits' object",
+    ),
+    Case(
+        "shard path outside the folder (validate)",
+        lambda r, t: (edit_manifest(r, set_file("../outside/x.parquet")), ("validate", r))[1],
+        cli(records_main),
+        "'../outside/x.parquet' points outside the dataset folder",
+        code=1,
+    ),
+    Case(
+        "shard path outside the folder (reader)",
+        lambda r, t: (edit_manifest(r, set_file("../outside/x.parquet")), (r,))[1],
+        reader,
+        "points outside the dataset folder",
+    ),
+    Case(
+        "absolute shard path (info)",
+        lambda r, t: (edit_manifest(r, set_file(str(r / SHARD))), ("info", r))[1],
+        cli(records_main),
+        "points outside the dataset folder",
+    ),
+    Case(
+        "--out is a file",
+        lambda r, t: ((t / "file").write_text("x"), (t / "file",))[1],
+        fake_build,
+        "--out is a file, not a folder",
+    ),
     Case("read-only output folder", lambda r, t: (read_only_folder(t),), fake_build, "cannot write the output folder"),
-    Case("truncated shard (info)", lambda r, t: ((r / SHARD).write_bytes((r / SHARD).read_bytes()[:-100]), ("info", r))[1],
-         cli(records_main), "(truncated or replaced)"),
-    Case("truncated shard (reader)", lambda r, t: ((r / SHARD).write_bytes((r / SHARD).read_bytes()[:-100]), (r,))[1],
-         reader, f"{SHARD}: size"),
-    Case("flipped bytes (reader, page checksums)", lambda r, t: (flip_bytes(r), (r,))[1], reader,
-         f"{SHARD}: scene"),
-    Case("flipped bytes (data.verify=sha256)", lambda r, t: (flip_bytes(r), (r, "train", "sha256"))[1], reader,
-         f"{SHARD}: sha256 does not match"),
-    Case("corrupt RLE (training sample)", lambda r, t: (r,), train_sample,
-         f"{SHARD}: scene 'rle' view 0: mask RLE does not decode"),
-    Case("contact sheet cannot be written", lambda r, t: ((t / "f").write_text("x"), ("info", r, "--split", "val",
-         "--sheet", t / "f" / "sheet.png"))[1], cli(records_main), "cannot write the contact sheet"),
-    Case("--ray-address without --executor ray", lambda r, t: ("--out", t / "ss", "--ray-address", "auto"),
-         cli(scene_shapes_main), "--ray-address needs --executor ray"),
-    Case("usl-eval on an empty split", lambda r, t: (r, "--split", "val", "--rows", "random", "--out", t / "eval",
-         "--quiet"), cli(eval_main), "split 'val' has no scenes to evaluate"),
+    Case(
+        "truncated shard (info)",
+        lambda r, t: ((r / SHARD).write_bytes((r / SHARD).read_bytes()[:-100]), ("info", r))[1],
+        cli(records_main),
+        "(truncated or replaced)",
+    ),
+    Case(
+        "truncated shard (reader)",
+        lambda r, t: ((r / SHARD).write_bytes((r / SHARD).read_bytes()[:-100]), (r,))[1],
+        reader,
+        f"{SHARD}: size",
+    ),
+    Case("flipped bytes (reader, page checksums)", lambda r, t: (flip_bytes(r), (r,))[1], reader, f"{SHARD}: scene"),
+    Case(
+        "flipped bytes (data.verify=sha256)",
+        lambda r, t: (flip_bytes(r), (r, "train", "sha256"))[1],
+        reader,
+        f"{SHARD}: sha256 does not match",
+    ),
+    Case(
+        "corrupt RLE (training sample)",
+        lambda r, t: (r,),
+        train_sample,
+        f"{SHARD}: scene 'rle' view 0: mask RLE does not decode",
+    ),
+    Case(
+        "contact sheet cannot be written",
+        lambda r, t: ((t / "f").write_text("x"), ("info", r, "--split", "val", "--sheet", t / "f" / "sheet.png"))[1],
+        cli(records_main),
+        "cannot write the contact sheet",
+    ),
+    Case(
+        "--ray-address without --executor ray",
+        lambda r, t: ("--out", t / "ss", "--ray-address", "auto"),
+        cli(scene_shapes_main),
+        "--ray-address needs --executor ray",
+    ),
+    Case(
+        "usl-eval on an empty split",
+        lambda r, t: (r, "--split", "val", "--rows", "random", "--out", t / "eval", "--quiet"),
+        cli(eval_main),
+        "split 'val' has no scenes to evaluate",
+    ),
 ]
 
 
@@ -166,12 +228,21 @@ def test_validate_reports_an_empty_image_and_keeps_checking_the_shard(dataset, c
     assert any("scene 'rle' view 0: instance 7: mask RLE does not decode" in p for p in problems)
 
 
-@pytest.mark.parametrize("content, expect", [
-    ("scene_name,camera_name,frame_id,included_in_public_release,exclude_reason,split_partition_name\n"
-     "ai_001_001,cam_00,0,True\n", ":2: the row has fewer fields than the header"),
-    ("scene_name,camera_name,frame_id,included_in_public_release,exclude_reason,split_partition_name\n"
-     "ai_001_001,cam_00,0,True,,train,extra\n", ":2: the row has more fields than the header"),
-])
+@pytest.mark.parametrize(
+    "content, expect",
+    [
+        (
+            "scene_name,camera_name,frame_id,included_in_public_release,exclude_reason,split_partition_name\n"
+            "ai_001_001,cam_00,0,True\n",
+            ":2: the row has fewer fields than the header",
+        ),
+        (
+            "scene_name,camera_name,frame_id,included_in_public_release,exclude_reason,split_partition_name\n"
+            "ai_001_001,cam_00,0,True,,train,extra\n",
+            ":2: the row has more fields than the header",
+        ),
+    ],
+)
 def test_hypersim_split_csv_with_a_bad_row(tmp_path, content, expect):
     path = tmp_path / "split.csv"
     path.write_text(content)

@@ -1,4 +1,5 @@
 """Writer/driver/reader round trip: resume after a killed build, worker/rank partition, errors."""
+
 import json
 import subprocess
 import sys
@@ -17,18 +18,30 @@ HERE = Path(__file__).parent
 
 def make_plans(num_scenes=10, per_shard=3):
     units = [(f"scene{i:03d}", i, 2 + i % 4) for i in range(num_scenes)]
-    return [ShardPlan("train", k, units[k * per_shard:(k + 1) * per_shard]) for k in range((num_scenes + per_shard - 1) // per_shard)]
+    return [
+        ShardPlan("train", k, units[k * per_shard : (k + 1) * per_shard])
+        for k in range((num_scenes + per_shard - 1) // per_shard)
+    ]
 
 
 def build(out, workers=1, plans=None):
-    return run_build(BuildOptions(out, workers=workers, progress=False), SPEC, {"v": 1}, plans or make_plans(),
-                     build_fake_scene, {"command": "test"})
+    return run_build(
+        BuildOptions(out, workers=workers, progress=False),
+        SPEC,
+        {"v": 1},
+        plans or make_plans(),
+        build_fake_scene,
+        {"command": "test"},
+    )
 
 
 def checksums(root):
     manifest = json.loads((root / "manifest.json").read_text())
-    return {s["frames"]["file"]: (s["frames"]["sha256"], (s["objects"] or {}).get("sha256"))
-            for e in manifest["splits"].values() for s in e["shards"]}
+    return {
+        s["frames"]["file"]: (s["frames"]["sha256"], (s["objects"] or {}).get("sha256"))
+        for e in manifest["splits"].values()
+        for s in e["shards"]
+    }
 
 
 KILLER = """
@@ -55,7 +68,9 @@ def test_resume_after_kill_matches_uninterrupted_build(tmp_path):
     proc = subprocess.run([sys.executable, "-c", KILLER.format(here=str(HERE), out=str(interrupted))], cwd=HERE)
     assert proc.returncode == 3
     assert not (interrupted / "manifest.json").exists()
-    assert list(interrupted.glob("frames/train/*.tmp-*")), "the killed build should leave its partial shard as a temp file"
+    assert list(interrupted.glob("frames/train/*.tmp-*")), (
+        "the killed build should leave its partial shard as a temp file"
+    )
     summary = build(interrupted)
     assert summary.kept_shards == 2 and summary.built_shards == 2
     assert not list(interrupted.glob("frames/train/*.tmp-*"))
@@ -109,8 +124,14 @@ def test_skips_are_recorded_and_foreign_folder_refused(tmp_path):
 def test_split_build_across_machines_then_finalise(tmp_path):
     out = tmp_path / "ds"
     for index in range(2):
-        summary = run_build(BuildOptions(out, num_shards=2, shard_index=index, progress=False), SPEC, {"v": 1},
-                            make_plans(), build_fake_scene, {})
+        summary = run_build(
+            BuildOptions(out, num_shards=2, shard_index=index, progress=False),
+            SPEC,
+            {"v": 1},
+            make_plans(),
+            build_fake_scene,
+            {},
+        )
     assert summary.manifest_written and summary.kept_shards == 2 and summary.built_shards == 2
     assert len(RecordsDataset(out, "train")) == 10
 
@@ -129,4 +150,5 @@ def test_finished_shard_in_an_older_layout_is_rebuilt_not_mixed_in(tmp_path):
     summary = build(out, plans=plans)
     assert (summary.kept_shards, summary.built_shards) == (1, 1)
     assert json.loads((out / "manifest.json").read_text())["splits"]["train"]["shards"][0]["frames"]["file"] == (
-        "frames/train/frames-00000.parquet")
+        "frames/train/frames-00000.parquet"
+    )

@@ -1,4 +1,5 @@
 """The COCO export as pycocotools reads it, and with what detectron2's load_coco_json requires."""
+
 import contextlib
 import io
 import json
@@ -16,8 +17,21 @@ from usl.records.cli import main as records_cli
 @pytest.fixture(scope="module")
 def export(fake_v2, tmp_path_factory):
     out = tmp_path_factory.mktemp("coco")
-    assert records_cli(["export-coco", str(fake_v2), "--split", "train", "--out", str(out / "train.json"),
-                        "--images-dir", str(out / "images")]) == 0
+    assert (
+        records_cli(
+            [
+                "export-coco",
+                str(fake_v2),
+                "--split",
+                "train",
+                "--out",
+                str(out / "train.json"),
+                "--images-dir",
+                str(out / "images"),
+            ]
+        )
+        == 0
+    )
     with contextlib.redirect_stdout(io.StringIO()):
         coco = COCO(str(out / "train.json"))
     return coco, out
@@ -43,7 +57,11 @@ def test_masks_boxes_and_ids_match_the_records(export, fake_v2):
     for image_id, row in zip(sorted(coco.imgs), rows):
         image = coco.imgs[image_id]
         assert (image["scene_id"], image["view_id"], image["height"], image["width"]) == (
-            row["scene_id"], row["view_id"], row["height"], row["width"])
+            row["scene_id"],
+            row["view_id"],
+            row["height"],
+            row["width"],
+        )
         anns = coco.imgToAnns[image_id]
         assert [a["instance_id"] for a in anns] == [i["instance_id"] for i in row["instances"]]
         for ann, inst in zip(anns, row["instances"]):

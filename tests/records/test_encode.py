@@ -1,4 +1,5 @@
 """Mask, image and depth encoding against independent oracles (pycocotools, OpenCV)."""
+
 import numpy as np
 import pytest
 from pycocotools import mask as coco

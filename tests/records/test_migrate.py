@@ -1,4 +1,5 @@
 """Schema v1 folders: read transparently, validated, and migrated in place to the exact bytes of a v2 build."""
+
 import json
 
 import pytest
@@ -21,7 +22,12 @@ def all_rows(root):
 
 def shard_files(root):
     manifest = json.loads((root / "manifest.json").read_text())
-    return [(s[t]["file"], s[t]["sha256"]) for e in manifest["splits"].values() for s in e["shards"] for t in ("frames", "objects")]
+    return [
+        (s[t]["file"], s[t]["sha256"])
+        for e in manifest["splits"].values()
+        for s in e["shards"]
+        for t in ("frames", "objects")
+    ]
 
 
 @pytest.fixture

@@ -1,4 +1,5 @@
 """``--executor ray`` runs the same shard plan as Ray tasks and writes the same bytes as local."""
+
 import os
 from pathlib import Path
 
@@ -16,8 +17,12 @@ REPO = HERE.parent.parent
 def local_ray():
     """A local two-CPU Ray instance whose workers import the test helpers, as a user's would import usl."""
     path = os.pathsep.join([str(HERE), str(REPO), os.environ.get("PYTHONPATH", "")])
-    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False,
-             runtime_env={"env_vars": {"PYTHONPATH": path, "OMP_NUM_THREADS": "1"}})
+    ray.init(
+        num_cpus=2,
+        include_dashboard=False,
+        log_to_driver=False,
+        runtime_env={"env_vars": {"PYTHONPATH": path, "OMP_NUM_THREADS": "1"}},
+    )
     yield
     ray.shutdown()
 

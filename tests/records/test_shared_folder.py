@@ -1,5 +1,6 @@
 """Many processes on one --out: disjoint claims, identical shards, refusal of other arguments,
 stale claims taken over, and nothing of a gone process left behind."""
+
 import json
 import os
 import subprocess
@@ -22,14 +23,23 @@ SCRIPT = HERE / "shared_build.py"
 
 
 def build(out, version=1, **options):
-    return run_build(BuildOptions(out, progress=False, **options), fake_scenes.SPEC, {"v": version}, plans(),
-                     fake_scenes.build_fake_scene, {"command": "test"})
+    return run_build(
+        BuildOptions(out, progress=False, **options),
+        fake_scenes.SPEC,
+        {"v": version},
+        plans(),
+        fake_scenes.build_fake_scene,
+        {"command": "test"},
+    )
 
 
 def shard_checksums(root):
     manifest = json.loads((root / "manifest.json").read_text())
-    return [(s["frames"]["file"], s["frames"]["sha256"], s["objects"]["sha256"], s["scenes"])
-            for e in manifest["splits"].values() for s in e["shards"]]
+    return [
+        (s["frames"]["file"], s["frames"]["sha256"], s["objects"]["sha256"], s["scenes"])
+        for e in manifest["splits"].values()
+        for s in e["shards"]
+    ]
 
 
 @pytest.fixture(scope="module")
@@ -41,8 +51,14 @@ def reference(tmp_path_factory):
 
 def start(out, versions, ready):
     ready.mkdir()
-    return [subprocess.Popen([sys.executable, str(SCRIPT), str(out), str(v), str(ready), str(len(versions))],
-                             stdout=subprocess.PIPE, text=True) for v in versions]
+    return [
+        subprocess.Popen(
+            [sys.executable, str(SCRIPT), str(out), str(v), str(ready), str(len(versions))],
+            stdout=subprocess.PIPE,
+            text=True,
+        )
+        for v in versions
+    ]
 
 
 def finish(procs):
@@ -53,9 +69,12 @@ def finish(procs):
 def leftovers(root):
     """Files no finished build should leave: temp files, spills, claims, owners, scratch."""
     build_dir = root / ".build"
-    return ([p for p in root.rglob("*") if ".tmp-" in p.name or "scratch-" in p.name]
-            + list((build_dir / "claims").iterdir()) + list((build_dir / "owners").iterdir())
-            + (list((build_dir / "spill").iterdir()) if (build_dir / "spill").exists() else []))
+    return (
+        [p for p in root.rglob("*") if ".tmp-" in p.name or "scratch-" in p.name]
+        + list((build_dir / "claims").iterdir())
+        + list((build_dir / "owners").iterdir())
+        + (list((build_dir / "spill").iterdir()) if (build_dir / "spill").exists() else [])
+    )
 
 
 def test_three_processes_with_the_same_arguments_share_the_work(reference, tmp_path):
@@ -96,12 +115,15 @@ def write_holder(path, token, host, pid, age_s=0.0):
     os.utime(path, (then, then))
 
 
-@pytest.mark.parametrize("holder, taken_over", [
-    ("dead process on this host", True),
-    ("other host, heartbeat older than the timeout", True),
-    ("other host, fresh heartbeat", False),
-    ("live process on this host", False),
-])
+@pytest.mark.parametrize(
+    "holder, taken_over",
+    [
+        ("dead process on this host", True),
+        ("other host, heartbeat older than the timeout", True),
+        ("other host, fresh heartbeat", False),
+        ("live process on this host", False),
+    ],
+)
 def test_claims_of_gone_processes_are_taken_over_and_their_files_removed(reference, tmp_path, holder, taken_over):
     out = tmp_path / "ds"
     build_dir = out / ".build"

@@ -1,4 +1,5 @@
 """Long scenes streamed through spill files: same shards as in memory, resumable, flat memory."""
+
 import json
 import subprocess
 import sys
@@ -21,19 +22,26 @@ LENGTHS = [3, 150, 5, 64, 2, 0, 70, 100, 1, 1, 130, 65, 2, 4]
 
 def plans(per_shard=4):
     units = [(f"scene{i:03d}", i, n) for i, n in enumerate(LENGTHS)]
-    return [ShardPlan("train", k, units[start:start + per_shard]) for k, start in enumerate(range(0, len(units), per_shard))]
+    return [
+        ShardPlan("train", k, units[start : start + per_shard])
+        for k, start in enumerate(range(0, len(units), per_shard))
+    ]
 
 
 def build(out, build_scene, workers=1):
-    return run_build(BuildOptions(out, workers=workers, progress=False), SPEC, {"v": 1}, plans(), build_scene,
-                     {"command": "test"})
+    return run_build(
+        BuildOptions(out, workers=workers, progress=False), SPEC, {"v": 1}, plans(), build_scene, {"command": "test"}
+    )
 
 
 def shards(root):
     """Shard checksums plus the scene index: everything a reader relies on."""
     manifest = json.loads((root / "manifest.json").read_text())
-    return [(s["frames"]["sha256"], (s["objects"] or {}).get("sha256"), s["scenes"])
-            for e in manifest["splits"].values() for s in e["shards"]]
+    return [
+        (s["frames"]["sha256"], (s["objects"] or {}).get("sha256"), s["scenes"])
+        for e in manifest["splits"].values()
+        for s in e["shards"]
+    ]
 
 
 @pytest.fixture(scope="module")
@@ -171,8 +179,11 @@ def test_peak_memory_stays_flat_in_scene_length_when_streamed(tmp_path):
 
     def growth_mib(streamed: bool) -> float:
         script = PEAK.format(here=str(HERE), out=str(tmp_path / str(streamed)), streamed=streamed)
-        return float(subprocess.run([sys.executable, "-c", script], cwd=HERE, check=True, capture_output=True,
-                                    text=True).stdout.split()[-1])
+        return float(
+            subprocess.run(
+                [sys.executable, "-c", script], cwd=HERE, check=True, capture_output=True, text=True
+            ).stdout.split()[-1]
+        )
 
     assert growth_mib(streamed=False) > 100  # the control: rows held in memory, then as Arrow, grow with the scene
     assert growth_mib(streamed=True) < 4

@@ -1,4 +1,5 @@
 """Real consumers read v2 folders as they are: pandas, pyarrow.dataset, Hugging Face datasets."""
+
 import json
 
 import numpy as np
@@ -19,7 +20,17 @@ def test_pandas_and_pyarrow_dataset_read_one_table_per_folder(fake_v2):
     splits = manifest(fake_v2)["splits"]
     frames = pd.read_parquet(fake_v2 / "frames" / "train")
     assert len(frames) == splits["train"]["num_frames"] == 7 and frames["image"].notna().all()
-    assert list(frames.columns) == ["scene_id", "view_id", "image", "height", "width", "K", "cam_to_world", "depth", "instances"]
+    assert list(frames.columns) == [
+        "scene_id",
+        "view_id",
+        "image",
+        "height",
+        "width",
+        "K",
+        "cam_to_world",
+        "depth",
+        "instances",
+    ]
     objects = pads.dataset(fake_v2 / "objects" / "train", format="parquet")
     assert objects.count_rows() == splits["train"]["num_objects"] == 4
     schema = pads.dataset(fake_v2 / "frames" / "val", format="parquet").schema

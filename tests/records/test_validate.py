@@ -1,4 +1,5 @@
 """The validator accepts a good dataset and names the file for each kind of damage."""
+
 import json
 import shutil
 

@@ -3,6 +3,7 @@
 Independent of usl's upgrade code: rows are turned back by hand (image bytes, ``bbox``, int32
 categories) and written with the v1 schema, row groups as in the source, plus a v1 manifest.
 """
+
 import json
 from pathlib import Path
 
@@ -16,8 +17,17 @@ from usl.records.shards import sha256_file
 def _v1_row(row, table):
     if table == "objects":
         return row
-    instances = [{"instance_id": i["instance_id"], "category_id": i["category_id"], "mask": i["mask"], "bbox": i["box_xyxy"],
-                  "area": i["area"], "depth_min": i["depth_min"]} for i in row["instances"]]
+    instances = [
+        {
+            "instance_id": i["instance_id"],
+            "category_id": i["category_id"],
+            "mask": i["mask"],
+            "bbox": i["box_xyxy"],
+            "area": i["area"],
+            "depth_min": i["depth_min"],
+        }
+        for i in row["instances"]
+    ]
     return {**row, "image": row["image"]["bytes"], "instances": instances}
 
 
@@ -38,7 +48,11 @@ def write_v1_copy(v2_root: Path, target: Path) -> Path:
                     for group in range(source.num_row_groups):
                         rows = [_v1_row(r, table) for r in source.read_row_group(group).to_pylist()]
                         writer.write_table(pa.Table.from_pylist(rows, schema=schema))
-                shard[table] = {"file": file, "rows": shard[table]["rows"], "bytes": (target / file).stat().st_size,
-                                "sha256": sha256_file(target / file)}
+                shard[table] = {
+                    "file": file,
+                    "rows": shard[table]["rows"],
+                    "bytes": (target / file).stat().st_size,
+                    "sha256": sha256_file(target / file),
+                }
     (target / "manifest.json").write_text(json.dumps(manifest, indent=1))
     return target

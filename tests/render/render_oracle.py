@@ -1,5 +1,6 @@
 """Independent oracle for the rasterizer tests: pyrender (OpenGL through EGL), driven by a
 camera that takes the full 3x3 K, so tilt-shift intrinsics are checked too."""
+
 from __future__ import annotations
 
 import os
@@ -30,17 +31,21 @@ class FullKCamera(pyrender.Camera):
     def get_projection_matrix(self, width=None, height=None):
         n, f = self.znear, self.zfar
         rows = np.zeros((4, 4))
-        rows[:, :3] = np.stack([
-            2.0 / width * self.K[0] - self.K[2],
-            self.K[2] - 2.0 / height * self.K[1],
-            (f + n) / (f - n) * self.K[2],
-            self.K[2],
-        ])
+        rows[:, :3] = np.stack(
+            [
+                2.0 / width * self.K[0] - self.K[2],
+                self.K[2] - 2.0 / height * self.K[1],
+                (f + n) / (f - n) * self.K[2],
+                self.K[2],
+            ]
+        )
         rows[2, 3] = -2.0 * f * n / (f - n)
         return rows @ OPENCV_TO_OPENGL
 
 
-def render_pyrender(meshes_world: list[trimesh.Trimesh], cam_to_world: np.ndarray, K: np.ndarray, height: int, width: int):
+def render_pyrender(
+    meshes_world: list[trimesh.Trimesh], cam_to_world: np.ndarray, K: np.ndarray, height: int, width: int
+):
     """Instance map (H, W) int (-1 background), planar depth (H, W) (0 background), and
     each mesh's unoccluded mask (M, H, W), as pyrender sees them."""
     scene = pyrender.Scene(bg_color=[0, 0, 0, 0])
@@ -51,7 +56,10 @@ def render_pyrender(meshes_world: list[trimesh.Trimesh], cam_to_world: np.ndarra
     renderer = pyrender.OffscreenRenderer(width, height)
     try:
         seg, w_depth = renderer.render(scene, flags=pyrender.RenderFlags.SEG, seg_node_map=colours)
-        alone = [renderer.render(scene, flags=pyrender.RenderFlags.SEG, seg_node_map={node: colours[node]})[0] for node in nodes]
+        alone = [
+            renderer.render(scene, flags=pyrender.RenderFlags.SEG, seg_node_map={node: colours[node]})[0]
+            for node in nodes
+        ]
     finally:
         renderer.delete()
     instance = _decode(seg, len(nodes))

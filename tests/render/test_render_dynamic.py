@@ -1,4 +1,5 @@
 """Dynamic rendering: window choice, exact-area targets, and soft renders aligned with them."""
+
 import numpy as np
 import pytest
 import torch
@@ -45,7 +46,12 @@ def projected_box(verts, K):
 def test_exact_area_resampling_matches_overlap_oracle_and_average_pooling():
     rng = np.random.default_rng(0)
     mask = rng.random((37, 53)) > 0.6
-    for window in ([3.3, 2.7, 30.1, 29.5], [-5.5, 10.25, 60.0, 75.75], [10.0, 12.0, 11.5, 13.5], [0.0, 0.0, 53.0, 53.0]):
+    for window in (
+        [3.3, 2.7, 30.1, 29.5],
+        [-5.5, 10.25, 60.0, 75.75],
+        [10.0, 12.0, 11.5, 13.5],
+        [0.0, 0.0, 53.0, 53.0],
+    ):
         got = resample_mask_area(torch.as_tensor(mask), window, 16).numpy()
         np.testing.assert_allclose(got, area_oracle(mask, window, 16), atol=1e-9)
     # Integer-aligned windows whose side is a multiple of R are plain average pooling.
@@ -95,7 +101,9 @@ def test_soft_render_is_aligned_with_the_target_when_the_mesh_is_the_truth():
     K8 = scale_intrinsics(torch.as_tensor(intrinsics(height, width, (0.03, 0.02))), 8.0, 8.0)
     _, _, true_masks = render_pyrender(objects, np.eye(4), K8.numpy(), 8 * height, 8 * width)
     verts, faces, window = pack([(m.vertices, m.faces) for m in objects])
-    out = render_dynamic(verts, faces, window, K8.expand(3, 3, 3), torch.as_tensor(true_masks), resolution=resolution, settings=SHARP)
+    out = render_dynamic(
+        verts, faces, window, K8.expand(3, 3, 3), torch.as_tensor(true_masks), resolution=resolution, settings=SHARP
+    )
     for p in range(3):
         a, b = out.soft[p] > 0.5, out.target[p] > 0.5
         assert (a & b).sum() / (a | b).sum() > 0.975
@@ -129,8 +137,15 @@ def test_truncated_wide_objects_and_empty_pairs():
     listed = render_dynamic(verts, faces, window, K.expand(2, 3, 3), list(true_masks), resolution=24)
     assert torch.equal(listed.windows, out.windows) and torch.equal(listed.target, out.target)
     # Boxes given by the caller (an absent object's [0, 0, 0, 0] counts as no box).
-    boxed = render_dynamic(verts, faces, window, K.expand(2, 3, 3), true_masks, resolution=24,
-                           true_boxes=torch.tensor([[40.0, 15.0, 120.0, 25.0], [0.0, 0.0, 0.0, 0.0]]))
+    boxed = render_dynamic(
+        verts,
+        faces,
+        window,
+        K.expand(2, 3, 3),
+        true_masks,
+        resolution=24,
+        true_boxes=torch.tensor([[40.0, 15.0, 120.0, 25.0], [0.0, 0.0, 0.0, 0.0]]),
+    )
     assert torch.equal(boxed.windows, out.windows) and torch.equal(boxed.soft, out.soft)
 
 

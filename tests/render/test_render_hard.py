@@ -1,4 +1,5 @@
 """The z-buffer rasterizer against pyrender: visible instance masks, depth maps, nearest depth."""
+
 import numpy as np
 import pytest
 import torch
@@ -35,7 +36,10 @@ def test_hard_rasterizer_matches_pyrender_in_two_views_one_tilt_shift(height, wi
     # View 2 looks at the same objects from a slightly moved camera with a tilt-shift K.
     nudge = np.eye(4)
     nudge[:3, 3] = [0.15, -0.1, 0.05]
-    views = [(first_to_world, intrinsics(height, width)), (first_to_world @ nudge, intrinsics(height, width, (0.04, -0.03)))]
+    views = [
+        (first_to_world, intrinsics(height, width)),
+        (first_to_world @ nudge, intrinsics(height, width, (0.04, -0.03))),
+    ]
 
     meshes, transforms, mesh_view = [], [], []
     for j, (cam_to_world, _) in enumerate(views):
@@ -73,7 +77,9 @@ def test_hard_rasterizer_matches_pyrender_in_two_views_one_tilt_shift(height, wi
 
 def test_single_view_k_gives_unbatched_maps_and_faces_behind_the_camera_are_culled():
     # Triangle 0 in front; triangle 1 has a vertex behind the camera and must vanish.
-    verts = torch.tensor([[-1.0, -1.0, 2.0], [1.0, -1.0, 2.0], [0.0, 1.0, 2.0], [-1.0, 0.0, 1.0], [1.0, 0.0, 1.0], [0.0, 0.5, -0.5]])
+    verts = torch.tensor(
+        [[-1.0, -1.0, 2.0], [1.0, -1.0, 2.0], [0.0, 1.0, 2.0], [-1.0, 0.0, 1.0], [1.0, 0.0, 1.0], [0.0, 0.5, -0.5]]
+    )
     faces = torch.tensor([[0, 1, 2], [3, 4, 5]])
     K = torch.tensor([[20.0, 0.0, 16.0], [0.0, 20.0, 16.0], [0.0, 0.0, 1.0]])
     out = rasterize_hard(verts, faces, torch.tensor([0, 1]), K, 32, 32)

@@ -1,4 +1,5 @@
 """The soft silhouette rasterizer: pyrender masks, the dense reference, finite differences."""
+
 import numpy as np
 import pytest
 import torch
@@ -27,7 +28,9 @@ def iou(a, b):
     return (a & b).sum() / max((a | b).sum(), 1)
 
 
-@pytest.mark.parametrize("height,width,tilt,seed", [(128, 128, (0.0, 0.0), 0), (80, 144, (0.0, 0.0), 1), (120, 96, (0.05, -0.04), 2)])
+@pytest.mark.parametrize(
+    "height,width,tilt,seed", [(128, 128, (0.0, 0.0), 0), (80, 144, (0.0, 0.0), 1), (120, 96, (0.05, -0.04), 2)]
+)
 def test_sharp_soft_silhouettes_match_pyrender_masks(height, width, tilt, seed):
     rng = np.random.default_rng(seed)
     objects_cam = random_scene(rng, 5)
@@ -62,7 +65,9 @@ def _scene_for_dense_checks(dtype):
         (straddle_v, straddle_f),
     ]
     verts, faces, window = pack(meshes, dtype)
-    K = torch.stack([torch.as_tensor(intrinsics(40, 56, t), dtype=dtype) for t in [(0.0, 0.0), (0.04, -0.02), (0.0, 0.0)]])
+    K = torch.stack(
+        [torch.as_tensor(intrinsics(40, 56, t), dtype=dtype) for t in [(0.0, 0.0), (0.04, -0.02), (0.0, 0.0)]]
+    )
     return verts, faces, window, K
 
 
@@ -104,18 +109,28 @@ def assert_gradient_matches_central_differences(loss, verts, eps=1e-6, direction
 
 def test_soft_gradients_match_finite_differences():
     sphere = trimesh.creation.icosphere(subdivisions=0, radius=0.4)
-    verts, faces, window = pack([(sphere.vertices + [0.05, -0.03, 1.8], sphere.faces), (sphere.vertices * [1.2, 0.8, 1.0] + [0.1, 0.0, 2.2], sphere.faces)])
+    verts, faces, window = pack(
+        [
+            (sphere.vertices + [0.05, -0.03, 1.8], sphere.faces),
+            (sphere.vertices * [1.2, 0.8, 1.0] + [0.1, 0.0, 2.2], sphere.faces),
+        ]
+    )
     K = torch.stack([torch.as_tensor(intrinsics(20, 24, t)) for t in [(0.0, 0.0), (0.05, 0.03)]])
     weights = torch.rand(2, 20, 24, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
     settings = SoftRasterSettings(sigma=2e-2, blur_radius=0.15, faces_per_pixel=None)
-    assert_gradient_matches_central_differences(lambda v: (rasterize_soft(v, faces, window, K, 20, 24, settings) * weights).sum(), verts)
+    assert_gradient_matches_central_differences(
+        lambda v: (rasterize_soft(v, faces, window, K, 20, 24, settings) * weights).sum(), verts
+    )
 
 
 def test_soft_gradients_match_finite_differences_through_the_nearest_faces_cap():
     # Separate triangles at distinct depths: the nearest-K selection is locally constant,
     # so the capped silhouette is differentiable there.
     rng = np.random.default_rng(4)
-    tris = [(rng.uniform(-0.25, 0.25, size=(3, 3)) * [1, 1, 0.1] + [0, 0, depth], [[0, 1, 2]]) for depth in (1.5, 1.9, 2.3, 2.7)]
+    tris = [
+        (rng.uniform(-0.25, 0.25, size=(3, 3)) * [1, 1, 0.1] + [0, 0, depth], [[0, 1, 2]])
+        for depth in (1.5, 1.9, 2.3, 2.7)
+    ]
     verts, faces, _ = pack(tris)
     window = torch.zeros(len(faces), dtype=torch.long)
     K = torch.as_tensor(intrinsics(16, 16))[None]
@@ -123,7 +138,9 @@ def test_soft_gradients_match_finite_differences_through_the_nearest_faces_cap()
     settings = SoftRasterSettings(sigma=2e-2, blur_radius=0.1, faces_per_pixel=2)
     loss = lambda v: (rasterize_soft(v, faces, window, K, 16, 16, settings) * weights).sum()  # noqa: E731
     assert_gradient_matches_central_differences(loss, verts)
-    uncapped = rasterize_soft(verts, faces, window, K, 16, 16, SoftRasterSettings(sigma=2e-2, blur_radius=0.1, faces_per_pixel=None))
+    uncapped = rasterize_soft(
+        verts, faces, window, K, 16, 16, SoftRasterSettings(sigma=2e-2, blur_radius=0.1, faces_per_pixel=None)
+    )
     assert (uncapped - rasterize_soft(verts, faces, window, K, 16, 16, settings)).max() > 0.05  # the cap binds
 
 
@@ -133,13 +150,17 @@ def test_sigma_and_blur_radius_are_resolution_independent():
     settings = SoftRasterSettings(sigma=1e-3, blur_radius=1e-2)
     coverage = []
     for size in (32, 96):
-        K = torch.tensor([[[size * 1.0, 0.0, size / 2], [0.0, size * 1.0, size / 2], [0.0, 0.0, 1.0]]], dtype=torch.float64)
+        K = torch.tensor(
+            [[[size * 1.0, 0.0, size / 2], [0.0, size * 1.0, size / 2], [0.0, 0.0, 1.0]]], dtype=torch.float64
+        )
         coverage.append(rasterize_soft(verts, faces, window, K, size, size, settings).mean().item())
     assert coverage[0] == pytest.approx(coverage[1], rel=0.02)
 
 
 def test_empty_and_fully_culled_windows_render_blank():
-    verts = torch.tensor([[0.0, 0.0, -1.0], [1.0, 0.0, -1.0], [0.0, 1.0, -1.0]], dtype=torch.float64, requires_grad=True)
+    verts = torch.tensor(
+        [[0.0, 0.0, -1.0], [1.0, 0.0, -1.0], [0.0, 1.0, -1.0]], dtype=torch.float64, requires_grad=True
+    )
     K = torch.as_tensor(intrinsics(16, 16)).expand(2, 3, 3)
     image = rasterize_soft(verts, torch.tensor([[0, 1, 2]]), torch.tensor([1]), K, 16, 16)
     assert image.shape == (2, 16, 16) and image.abs().sum() == 0

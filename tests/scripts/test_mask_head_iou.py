@@ -1,6 +1,7 @@
 """scripts/mask_head_iou.py: the true-owner and true-object-order composites, against the z-buffer
 of the same meshes placed in that order (two spheres overlapping in the image, drawn with both
 depth orders), the count of rightly ordered pairs, and the owner oracle hiding a spill that no order hides."""
+
 from __future__ import annotations
 
 import sys
@@ -20,8 +21,12 @@ def _spheres(depth_a: float, depth_b: float) -> tuple[torch.Tensor, torch.Tensor
     """a and b of one radius, side by side, overlapping in the image, whatever their depths (a
     sphere scaled with its depth about the camera projects to the same disc)."""
     verts, faces = ico_sphere(2)
-    return torch.stack([(verts * 0.4 + torch.tensor([0.15, 0.0, 2.5])) * depth_a / 2.5,
-                        (verts * 0.4 + torch.tensor([-0.15, 0.0, 2.5])) * depth_b / 2.5]), faces
+    return torch.stack(
+        [
+            (verts * 0.4 + torch.tensor([0.15, 0.0, 2.5])) * depth_a / 2.5,
+            (verts * 0.4 + torch.tensor([-0.15, 0.0, 2.5])) * depth_b / 2.5,
+        ]
+    ), faces
 
 
 def test_owner_wins_is_the_z_buffer_of_the_meshes_placed_in_the_true_order():
@@ -43,9 +48,13 @@ def test_true_object_order_is_the_z_buffer_of_the_meshes_placed_in_that_order():
     alone = mask_head_iou.draw(a_in_front, faces, K, 64, 64, together=False)
     torch.testing.assert_close(mask_head_iou.object_order_masks(alone.depth_map, torch.tensor([3.0, 2.5])), truth)
     # an object without a true depth goes behind every other
-    torch.testing.assert_close(mask_head_iou.object_order_masks(alone.depth_map, torch.tensor([float("nan"), 2.5])), truth)
-    torch.testing.assert_close(mask_head_iou.object_order_masks(alone.depth_map, torch.tensor([2.5, float("nan")])),
-                               mask_head_iou.draw(a_in_front, faces, K, 64, 64, together=True).masks)
+    torch.testing.assert_close(
+        mask_head_iou.object_order_masks(alone.depth_map, torch.tensor([float("nan"), 2.5])), truth
+    )
+    torch.testing.assert_close(
+        mask_head_iou.object_order_masks(alone.depth_map, torch.tensor([2.5, float("nan")])),
+        mask_head_iou.draw(a_in_front, faces, K, 64, 64, together=True).masks,
+    )
     # the pair overlaps; its predicted order (a in front) is wrong for the truth (b in front)
     assert mask_head_iou.ordered_pairs(alone.masks, alone.nearest_depth, torch.tensor([3.0, 2.5])) == (0, 1)
     assert mask_head_iou.ordered_pairs(alone.masks, alone.nearest_depth, torch.tensor([2.5, 3.0])) == (1, 1)

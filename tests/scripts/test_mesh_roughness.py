@@ -1,5 +1,6 @@
 """scripts/mesh_roughness.py's figures: normal consistency (tested in tests/losses), the Laplacian's length and its w size
 against trimesh."""
+
 from __future__ import annotations
 
 import sys
@@ -21,7 +22,9 @@ def test_roughness_is_normal_consistency_and_the_mean_distance_to_the_neighbours
     faces = torch.from_numpy(mesh.faces)
     verts = torch.from_numpy(mesh.vertices)[None]
     laplacian = uniform_laplacian(len(mesh.vertices), unique_edges(faces), torch.float64)
-    consistency, length, along_w = mesh_roughness.roughness(verts, faces, faces_on_each_edge(faces), laplacian)[0].tolist()
+    consistency, length, along_w = mesh_roughness.roughness(verts, faces, faces_on_each_edge(faces), laplacian)[
+        0
+    ].tolist()
     assert np.isclose(consistency, np.mean(1.0 - np.cos(mesh.face_adjacency_angles)), atol=1e-9)
     centroids = np.stack([mesh.vertices[n].mean(0) for n in mesh.vertex_neighbors])
     assert np.isclose(length, np.linalg.norm(mesh.vertices - centroids, axis=1).mean(), atol=1e-9)

@@ -1,4 +1,5 @@
 """scripts/placement_chamfer.py: the alignments it scores, against brute-force distances (scipy's cdist)."""
+
 from __future__ import annotations
 
 import sys

@@ -4,6 +4,7 @@ The fixtures are the files table1.sh leaves: usl-eval's ``metrics.json`` written
 writer (``write_report``), run folders with checkpoints written by the trainer's
 ``write_run_checkpoint``; the expected numbers come from numpy and pandas.
 """
+
 from __future__ import annotations
 
 import json
@@ -43,9 +44,12 @@ def table(tmp_path):
     rng = np.random.default_rng(7)
     out = tmp_path / "table1"
     out.mkdir()
-    plan = [("usl2", "USL (2 views)", "train"), ("usl5", "USL (5 views)", "train"),
-            ("usl5_vertalign", "USL (5) w/o RoIMap", "train"),
-            ("usl5_no_dist", "USL (5) w/o ℓ_dist", "skipped: key not available (loss.weights.dist)")]
+    plan = [
+        ("usl2", "USL (2 views)", "train"),
+        ("usl5", "USL (5 views)", "train"),
+        ("usl5_vertalign", "USL (5) w/o RoIMap", "train"),
+        ("usl5_no_dist", "USL (5) w/o ℓ_dist", "skipped: key not available (loss.weights.dist)"),
+    ]
     (out / "plan.tsv").write_text("".join(f"{s}\t{label}\t{status}\toptim.max_iter=20\n" for s, label, status in plan))
     _write_eval(out / "baselines" / "eval", [_summary("Fixed depth", rng), _summary("Random depth", rng)])
     records = []
@@ -83,8 +87,11 @@ def test_markdown_cells_are_formatted_like_usl_eval(table):
     table1_summary.main([str(out)])
     text = (out / "table1.md").read_text()
     lines = text.split("Every run:")[0].splitlines()  # the summary table, above the per-run one
-    cells = {line.split("|")[1].strip(): [c.strip() for c in line.strip("|").split("|")] for line in lines
-             if line.startswith("| ")}
+    cells = {
+        line.split("|")[1].strip(): [c.strip() for c in line.strip("|").split("|")]
+        for line in lines
+        if line.startswith("| ")
+    }
     assert lines[0].startswith("| Model | Ch. ↓ | F1@0.1 | Mask IoU input | Mask IoU views | Seeds | Checkpoint |")
     chamfer = records.query("slug == 'usl5' and metric == 'chamfer'")["value"]
     iou = records.query("slug == 'usl5' and metric == 'mask_iou_views'")["value"] * 100  # IoU in percent
@@ -99,8 +106,14 @@ def test_markdown_cells_are_formatted_like_usl_eval(table):
     baselines = json.loads((out / "baselines" / "eval" / "metrics.json").read_text())["predictors"]
     fixed = next(p for p in baselines if p["name"] == "Fixed depth")["metrics"]
     assert cells["Fixed depth"][2] == f"{fixed['f1']:.1f}"
-    assert list(cells)[1:] == ["Fixed depth", "Random depth", "USL (2 views)", "USL (5 views)", "USL (5) w/o RoIMap",
-                               "USL (5) w/o ℓ_dist"]  # the paper's order
+    assert list(cells)[1:] == [
+        "Fixed depth",
+        "Random depth",
+        "USL (2 views)",
+        "USL (5 views)",
+        "USL (5) w/o RoIMap",
+        "USL (5) w/o ℓ_dist",
+    ]  # the paper's order
     seed2 = chamfer.iloc[2]
     assert f"| USL (5 views) | 2 | {seed2:.3f} |" in text  # below: every run with the checkpoint it scored
     assert "runs/usl5/seed2/train/checkpoints/model_0000020.pt" in text
@@ -141,8 +154,10 @@ def test_budget_scales_the_recipes_schedule():
 
 def test_plan_skips_rows_whose_key_is_missing_and_keeps_its_budget(tmp_path):
     assert table1_plan.row_status("tiny", ["data.num_views=5"]) == "train"
-    assert table1_plan.row_status("tiny", ["data.num_views=5", "loss.no_such_key=0"]) == \
-        "skipped: key not available (loss.no_such_key)"
+    assert (
+        table1_plan.row_status("tiny", ["data.num_views=5", "loss.no_such_key=0"])
+        == "skipped: key not available (loss.no_such_key)"
+    )
     with pytest.raises(table1_plan.ConfigError):  # a wrong value is a mistake, not a missing key
         table1_plan.row_status("tiny", ["model.shape.sampler=nonsense"])
     text = table1_plan.plan("tiny", 40, [0, 1], 2, tmp_path, ["val.period=0"], data="train=a heldout=b")
@@ -151,11 +166,17 @@ def test_plan_skips_rows_whose_key_is_missing_and_keeps_its_budget(tmp_path):
     assert [line[0] for line in lines] == [r.slug for r in table1_plan.TRAINED]
     usl5 = next(line for line in lines if line[0] == "usl5")
     assert usl5[2] == "train" and usl5[3].split() == table1_plan.budget_overrides(load_config("tiny"), 40) + [
-        "val.period=0", "data.num_views=5"]
+        "val.period=0",
+        "data.num_views=5",
+    ]
     with pytest.raises(ValueError, match="another budget"):
         table1_plan.plan("tiny", 80, [0, 1], 2, tmp_path, ["val.period=0"], data="train=a heldout=b")
-    assert table1_plan.main(["--out", str(tmp_path), "--iters", "40", "--seeds", "0,1,2", "--data", "train=a heldout=b",
-                             "val.period=0"]) == 0  # more seeds on the same budget are fine
+    assert (
+        table1_plan.main(
+            ["--out", str(tmp_path), "--iters", "40", "--seeds", "0,1,2", "--data", "train=a heldout=b", "val.period=0"]
+        )
+        == 0
+    )  # more seeds on the same budget are fine
 
 
 def test_a_folder_is_refused_once_its_recipe_file_changes(tmp_path):
@@ -169,4 +190,3 @@ def test_a_folder_is_refused_once_its_recipe_file_changes(tmp_path):
     recipe.write_text(f"_base_: {tiny}\nloss: {{render: {{blur_radius: 4.6e-3}}}}\n")
     with pytest.raises(ValueError, match="another budget"):
         table1_plan.plan(str(recipe), 40, [0, 1], 1, out)
-

@@ -4,7 +4,7 @@ Flipping each image on its own would break the multi-view geometry: the views' p
 longer describe the flipped images. Instead the whole scene is reflected by ``M = diag(-1, 1, 1)``
 in world coordinates and every camera is re-posed as ``cam_to_world' = M cam_to_world S`` with
 ``S = diag(-1, 1, 1)`` in camera coordinates. Then a world point ``M X`` lands in every view at
-``u' = W - u`` (pixel frame [0, W], DESIGN.md §2), with ``K' = F K S`` where ``F`` is
+``u' = W - u`` (pixel frame [0, W], docs/design.md §2), with ``K' = F K S`` where ``F`` is
 ``u -> W - u`` (``cx' = W - cx``, skew negated). Both ``M`` and ``S`` are reflections, so every
 new pose is a proper rigid transform, and the relative poses the loss uses become ``S R S``:
 all views stay consistent. Camera-frame true meshes reflect by ``S`` with their face winding

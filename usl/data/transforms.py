@@ -1,6 +1,6 @@
 """Resizing views consistently: image, masks, boxes and the intrinsics move together.
 
-With pixel centres at +0.5 (DESIGN.md §2) an image resized by (sx, sy) is a pure scale of
+With pixel centres at +0.5 (docs/design.md §2) an image resized by (sx, sy) is a pure scale of
 the pixel frame, so boxes scale and ``K' = diag(sx, sy, 1) K`` (``cameras.scale_intrinsics``).
 Masks use ``nearest-exact`` (sampling at pixel centres), which agrees with that convention.
 """

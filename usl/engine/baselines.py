@@ -2,7 +2,7 @@
 
 Every baseline object is a sphere: the unit ico-sphere of the normalized cube mapped into the
 object's frustum (true 2D box, K, depth z, depth extent rho) by the frustum homography of
-DESIGN.md §5 -- the same map the model's shape head goes through, so a baseline differs from the
+docs/design.md §5 -- the same map the model's shape head goes through, so a baseline differs from the
 model only in where z and rho come from and in not deforming the sphere.
 
 * ``RandomDepthBaseline``: z and rho uniform in the dataset spec's ranges, drawn per object from a
@@ -22,6 +22,7 @@ model only in where z and rho come from and in not deforming the sphere.
   Objects without either keep their predicted z. Depths here are homogeneous depths (K's third
   row), which equal planar z for every upper-triangular K.
 """
+
 from __future__ import annotations
 
 import zlib
@@ -45,7 +46,9 @@ def stable_seed(*parts: Any) -> int:
     return zlib.crc32(repr(parts).encode("utf-8"))
 
 
-def sphere_verts(boxes: Tensor, K: Tensor, z: Tensor, rho: Tensor, level: int = DEFAULT_SPHERE_LEVEL) -> tuple[Tensor, Tensor]:
+def sphere_verts(
+    boxes: Tensor, K: Tensor, z: Tensor, rho: Tensor, level: int = DEFAULT_SPHERE_LEVEL
+) -> tuple[Tensor, Tensor]:
     """Ico-spheres filling each object frustum: verts (N, V, 3) in the camera frame, faces (F, 3)."""
     unit, faces = ico_sphere(level, dtype=torch.float32, device=boxes.device)
     cube = unit.expand(boxes.shape[0], -1, -1)
@@ -85,7 +88,9 @@ class FixedDepthBaseline:
         out = []
         for inp in inputs:
             n = len(inp.frame.instance_ids)
-            out.append(sphere_predictions(inp, torch.full((n,), float(self.z)), torch.full((n,), float(self.rho)), self.level))
+            out.append(
+                sphere_predictions(inp, torch.full((n,), float(self.z)), torch.full((n,), float(self.rho)), self.level)
+            )
         return out
 
 
@@ -148,7 +153,9 @@ class TrueDepth:
         if self.source not in TRUE_DEPTH_SOURCES:
             raise ValueError(f"true depth source must be one of {TRUE_DEPTH_SOURCES}, got {self.source!r}")
         if self.inner.uses_detections:
-            raise ValueError(f"TrueDepth needs one prediction per ground-truth object; {self.inner.name!r} detects its own")
+            raise ValueError(
+                f"TrueDepth needs one prediction per ground-truth object; {self.inner.name!r} detects its own"
+            )
         self.name = self.name or f"{self.inner.name} w/ true depth"
         self.predicts_layout = False
         self.predicts_shape = self.inner.predicts_shape

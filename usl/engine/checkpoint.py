@@ -11,6 +11,7 @@ Consumers (evaluation, prediction) need only::
     model, config = load_model("runs/hypersim/checkpoints/model_0080000.pt")  # or the run folder
     predictions = model.predict(frames, mode="gt_boxes")  # list[ObjectPredictions]
 """
+
 from __future__ import annotations
 
 import os
@@ -79,7 +80,9 @@ def read_checkpoint(path: str | Path) -> dict[str, Any]:
     if not isinstance(payload, dict) or "model" not in payload or "config" not in payload:
         raise CheckpointError(f"{path} is not a usl checkpoint (expected a dict with 'model' and 'config')")
     if payload.get("format") != CHECKPOINT_FORMAT:
-        raise CheckpointError(f"{path}: checkpoint format {payload.get('format')!r}, this usl reads {CHECKPOINT_FORMAT}")
+        raise CheckpointError(
+            f"{path}: checkpoint format {payload.get('format')!r}, this usl reads {CHECKPOINT_FORMAT}"
+        )
     payload["path"] = str(path)
     return payload
 
@@ -112,7 +115,9 @@ def load_checkpoint(checkpoint_path: str | Path, device: str | torch.device = "c
         model.load_state_dict(payload["model"])
     except RuntimeError as exc:
         raise CheckpointError(f"{payload['path']}: weights do not fit the model its config describes: {exc}") from exc
-    return LoadedCheckpoint(model.to(device).eval(), config, Path(payload["path"]).resolve(), int(payload.get("iteration", -1)))
+    return LoadedCheckpoint(
+        model.to(device).eval(), config, Path(payload["path"]).resolve(), int(payload.get("iteration", -1))
+    )
 
 
 def load_model(checkpoint_path: str | Path, device: str | torch.device = "cpu"):
@@ -130,7 +135,9 @@ def write_run_checkpoint(run_dir: str | Path, iteration: int, payload: dict[str,
     """Save ``payload`` as ``<run>/checkpoints/model_<iteration>.pt``, point ``last_checkpoint``
     at it (also atomically), and delete all but the ``keep`` newest (``keep <= 0`` keeps all)."""
     folder = Path(run_dir) / CHECKPOINT_DIR
-    path = save_atomic({"format": CHECKPOINT_FORMAT, **payload, "iteration": iteration}, folder / checkpoint_name(iteration))
+    path = save_atomic(
+        {"format": CHECKPOINT_FORMAT, **payload, "iteration": iteration}, folder / checkpoint_name(iteration)
+    )
     _write_text_atomic(folder / LAST_POINTER, path.name + "\n")
     if keep > 0:
         for old in sorted(folder.glob("model_*.pt"))[:-keep]:

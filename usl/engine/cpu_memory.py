@@ -9,6 +9,7 @@ two-process training that was ~1/5 of all CPU time as system time (120 iteration
 performance guides recommend jemalloc or tcmalloc for the same reason; two ``mallopt`` calls get
 the same effect without another library. The cost: the process keeps its peak heap until it exits.
 """
+
 from __future__ import annotations
 
 import ctypes
@@ -36,4 +37,6 @@ def retain_freed_memory() -> bool:
     except (OSError, AttributeError):
         return False
     mallopt.argtypes, mallopt.restype = [ctypes.c_int, ctypes.c_int], ctypes.c_int
-    return bool(mallopt(M_MMAP_THRESHOLD, MMAP_THRESHOLD_BYTES)) and bool(mallopt(M_TRIM_THRESHOLD, TRIM_THRESHOLD_BYTES))
+    return bool(mallopt(M_MMAP_THRESHOLD, MMAP_THRESHOLD_BYTES)) and bool(
+        mallopt(M_TRIM_THRESHOLD, TRIM_THRESHOLD_BYTES)
+    )

@@ -3,6 +3,7 @@
 Top: the total loss and each loss term of ``metrics.csv`` (log scale when all are positive).
 Middle: the learning rate. Bottom: the ``val/*`` metrics of ``validation.csv`` (when it exists).
 """
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -13,7 +14,16 @@ from usl.engine.run_log import CSV_NAME, read_metrics
 CURVES_NAME = "curves.png"
 # Columns of metrics.csv that are not loss terms (statistics under "stat/" are not either).
 NOT_LOSSES = {
-    "iteration", "epoch", "lr", "grad_norm", "grad_norm_max", "clipped", "skipped", "time", "data_time", "peak_mem_mb",
+    "iteration",
+    "epoch",
+    "lr",
+    "grad_norm",
+    "grad_norm_max",
+    "clipped",
+    "skipped",
+    "time",
+    "data_time",
+    "peak_mem_mb",
 }
 
 
@@ -54,8 +64,19 @@ def plot_curves(run_dir: str | Path, validation_csv: str | None = None) -> Path 
     figure = Figure(figsize=(9, height))
     FigureCanvasAgg(figure)
     # fixed margins: a constrained layout costs seconds on a busy CPU
-    losses, lr, *rest = figure.subplots(panels, 1, sharex=True, gridspec_kw={
-        "height_ratios": ratios, "hspace": 0.45, "top": 1 - 0.8 / height, "bottom": 0.5 / height, "left": 0.1, "right": 0.97})
+    losses, lr, *rest = figure.subplots(
+        panels,
+        1,
+        sharex=True,
+        gridspec_kw={
+            "height_ratios": ratios,
+            "hspace": 0.45,
+            "top": 1 - 0.8 / height,
+            "bottom": 0.5 / height,
+            "left": 0.1,
+            "right": 0.97,
+        },
+    )
     keys = loss_keys(rows)
     _plot(losses, rows, keys)
     if all(r[k] > 0 for r in rows for k in keys if k in r):

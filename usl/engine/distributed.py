@@ -5,6 +5,7 @@ MASTER_ADDR, MASTER_PORT), so the same command works on one machine or several
 (``torchrun --nnodes N --nproc_per_node G --rdzv_endpoint HOST:PORT -m usl.engine.train ...``).
 NCCL on CUDA, gloo on CPU. Without torchrun it is a plain single process.
 """
+
 from __future__ import annotations
 
 import os
@@ -73,7 +74,9 @@ def init_distributed(device_preference: str = "auto") -> DistInfo:
     if device.type == "cuda":
         torch.cuda.set_device(device)
     if world_size > 1 and not dist.is_initialized():
-        dist.init_process_group(backend="nccl" if device.type == "cuda" else "gloo", device_id=device if device.type == "cuda" else None)
+        dist.init_process_group(
+            backend="nccl" if device.type == "cuda" else "gloo", device_id=device if device.type == "cuda" else None
+        )
     return DistInfo(rank, world_size, local_rank, device)
 
 

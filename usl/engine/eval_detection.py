@@ -9,6 +9,7 @@ AP (bbox and segm) comes from pycocotools' COCOeval on COCO dicts built here: gr
 input views' instances, detections with the predicted boxes (bbox) or the rendered meshes (segm; see
 ``eval_render.detection_masks``: visible parts in the scene of the confident detections).
 """
+
 from __future__ import annotations
 
 import contextlib
@@ -28,7 +29,9 @@ Tensor = torch.Tensor
 IOU_TYPES = ("bbox", "segm")
 
 
-def match_detections(boxes: Tensor, scores: Tensor, gt_boxes: Tensor, gt_ids: Tensor, iou_threshold: float = 0.5) -> Tensor:
+def match_detections(
+    boxes: Tensor, scores: Tensor, gt_boxes: Tensor, gt_ids: Tensor, iou_threshold: float = 0.5
+) -> Tensor:
     """Greedy one-to-one matching by box IoU; returns the matched instance id of each detection (-1 if none)."""
     matched = torch.full((boxes.shape[0],), -1, dtype=torch.int64)
     if boxes.shape[0] == 0 or gt_boxes.shape[0] == 0:
@@ -55,16 +58,25 @@ class CocoDetections:
         self.dt: dict[str, list[dict[str, Any]]] = {t: [] for t in IOU_TYPES}
 
     def add_image(
-        self, height: int, width: int, gt_labels: Tensor, gt_masks: Tensor,
-        labels: Tensor, scores: Tensor, boxes: Tensor, masks: Tensor,
+        self,
+        height: int,
+        width: int,
+        gt_labels: Tensor,
+        gt_masks: Tensor,
+        labels: Tensor,
+        scores: Tensor,
+        boxes: Tensor,
+        masks: Tensor,
     ) -> None:
         """Ground truth (contiguous labels, (n, H, W) masks) and detections (labels, scores, xyxy boxes, (N, H, W) masks)."""
         image_id = len(self.images) + 1
         self.images.append({"id": image_id, "height": int(height), "width": int(width)})
         for label, mask in zip(gt_labels.tolist(), gt_masks.cpu().numpy()):
-            self.gt.append(coco_annotation(
-                len(self.gt) + 1, image_id, self.category_ids[label], encode_mask(mask), mask.sum(), mask_bbox(mask)
-            ))
+            self.gt.append(
+                coco_annotation(
+                    len(self.gt) + 1, image_id, self.category_ids[label], encode_mask(mask), mask.sum(), mask_bbox(mask)
+                )
+            )
         for label, score, box, mask in zip(labels.tolist(), scores.tolist(), boxes.tolist(), masks.cpu().numpy()):
             common = {"image_id": image_id, "category_id": self.category_ids[label], "score": float(score)}
             self.dt["bbox"].append({**common, "bbox": xyxy_to_xywh(box)})

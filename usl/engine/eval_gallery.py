@@ -11,6 +11,7 @@ Two ways to choose (``usl-eval --pictures N --pictures-by ...``):
 Each picture is drawn for every predictor. The index page lists the pictures with their scene,
 view, the ``objects.jsonl`` lines of their objects and those objects' Mask IoU.
 """
+
 from __future__ import annotations
 
 import math
@@ -51,7 +52,9 @@ def spread_counts(num_scenes: int, count: int) -> list[int]:
 
 
 def mean_iou_views(rows: Sequence[dict[str, Any]]) -> float:
-    values = [r["mask_iou_views"] for r in rows if r.get("mask_iou_views") is not None and math.isfinite(r["mask_iou_views"])]
+    values = [
+        r["mask_iou_views"] for r in rows if r.get("mask_iou_views") is not None and math.isfinite(r["mask_iou_views"])
+    ]
     return sum(values) / len(values) if values else math.nan
 
 
@@ -67,8 +70,15 @@ class Picture:
 class Gallery:
     """Draws the chosen pictures and writes the index; ``out_dir`` is the ``pictures`` folder."""
 
-    def __init__(self, out_dir: Path, count: int, selection: str, predictors: Sequence[Predictor],
-                 categories: CategoryIndex, score_threshold: float):
+    def __init__(
+        self,
+        out_dir: Path,
+        count: int,
+        selection: str,
+        predictors: Sequence[Predictor],
+        categories: CategoryIndex,
+        score_threshold: float,
+    ):
         if selection not in PICTURE_SELECTIONS:
             raise UslError(f"--pictures-by {selection!r}: choose from {', '.join(PICTURE_SELECTIONS)}")
         self.out_dir, self.count, self.selection = out_dir, count, selection
@@ -89,8 +99,9 @@ class Gallery:
             chosen = sorted({int(i) for i in np.linspace(0, len(outcome.inputs) - 1, min(wanted, len(outcome.inputs)))})
             self.draw(dataset, outcome, chosen)
 
-    def finish(self, dataset: RecordsDataset, rows: Sequence[dict[str, Any]], selection: ViewSelection,
-               config: EvalConfig) -> None:
+    def finish(
+        self, dataset: RecordsDataset, rows: Sequence[dict[str, Any]], selection: ViewSelection, config: EvalConfig
+    ) -> None:
         """``extremes``: rank the input views, evaluate their scenes again and draw them."""
         if self.selection != "extremes" or not self.count or not self.predictors:
             return
@@ -120,10 +131,23 @@ class Gallery:
                 continue
             inp, predictor = outcome.inputs[pr.inp], self.predictors[pr.predictor]
             view_id = inp.frame.view_id
-            own = {r["instance_id"]: r for r in outcome.rows
-                   if r["predictor"] == predictor.name and r["input_view"] == view_id}
-            picture = evaluation_picture(dataset, inp, outcome.positions[pr.inp], pr.pred, predictor.name, self.categories,
-                                         poses, own, predictor.uses_detections, self.score_threshold)
+            own = {
+                r["instance_id"]: r
+                for r in outcome.rows
+                if r["predictor"] == predictor.name and r["input_view"] == view_id
+            }
+            picture = evaluation_picture(
+                dataset,
+                inp,
+                outcome.positions[pr.inp],
+                pr.pred,
+                predictor.name,
+                self.categories,
+                poses,
+                own,
+                predictor.uses_detections,
+                self.score_threshold,
+            )
             path = Path(slug(predictor.name)) / f"{slug(scene_id)}_view{view_id:05d}.png"
             write_png(self.out_dir / path, picture)
             keys = [(predictor.name, scene_id, view_id, int(i)) for i in sorted(own)]
@@ -133,15 +157,28 @@ class Gallery:
         """``index.md``: every picture with its objects' lines in ``objects.jsonl`` (1-based)."""
         if not self.pictures:
             return None
-        line_of = {(r["predictor"], r["scene_id"], r["input_view"], r["instance_id"]): n + 1 for n, r in enumerate(rows)}
-        how = ("spread evenly over the scenes" if self.selection == "spread" else
-               f"the worst and best by the mean Mask IoU (views) of {self.predictors[0].name}")
-        lines = [f"# Evaluation pictures ({len(self.pictures)})", "",
-                 f"Input views {how}; detections drawn from score {self.score_threshold:g}. "
-                 f"Rows are line numbers of [objects.jsonl]({objects_file}).", ""]
+        line_of = {
+            (r["predictor"], r["scene_id"], r["input_view"], r["instance_id"]): n + 1 for n, r in enumerate(rows)
+        }
+        how = (
+            "spread evenly over the scenes"
+            if self.selection == "spread"
+            else f"the worst and best by the mean Mask IoU (views) of {self.predictors[0].name}"
+        )
+        lines = [
+            f"# Evaluation pictures ({len(self.pictures)})",
+            "",
+            f"Input views {how}; detections drawn from score {self.score_threshold:g}. "
+            f"Rows are line numbers of [objects.jsonl]({objects_file}).",
+            "",
+        ]
         for name in dict.fromkeys(p.predictor for p in self.pictures):
-            lines += [f"## {name}", "", "| picture | scene | input view | objects.jsonl rows | Mask IoU input | Mask IoU views |",
-                      "|:---|:---|:---:|:---:|:---:|:---:|"]
+            lines += [
+                f"## {name}",
+                "",
+                "| picture | scene | input view | objects.jsonl rows | Mask IoU input | Mask IoU views |",
+                "|:---|:---|:---:|:---:|:---:|:---:|",
+            ]
             for picture in (p for p in self.pictures if p.predictor == name):
                 numbers = [line_of[k] for k in picture.keys if k in line_of]
                 scored = [rows[n - 1] for n in numbers]

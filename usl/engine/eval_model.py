@@ -4,6 +4,7 @@ The model sees each input view at its training resolution (``data.max_size`` of 
 training); its boxes are mapped back to the stored image's pixel frame, while its meshes are in
 camera coordinates and need no change.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
@@ -23,12 +24,16 @@ def frames_for_model(frames: Sequence[FrameData], max_size: int) -> list[FrameDa
     return [resize_frame(f, max_size) for f in frames]
 
 
-def boxes_to_frame(pred: ObjectPredictions, model_size: tuple[int, int], frame_size: tuple[int, int]) -> ObjectPredictions:
+def boxes_to_frame(
+    pred: ObjectPredictions, model_size: tuple[int, int], frame_size: tuple[int, int]
+) -> ObjectPredictions:
     """Boxes predicted on a resized image, back in the original image's pixel frame (a pure scale)."""
     if model_size == frame_size:
         return pred
     sx, sy = frame_size[1] / model_size[1], frame_size[0] / model_size[0]
-    return replace(pred, boxes=pred.boxes * torch.tensor([sx, sy, sx, sy], dtype=pred.boxes.dtype, device=pred.boxes.device))
+    return replace(
+        pred, boxes=pred.boxes * torch.tensor([sx, sy, sx, sy], dtype=pred.boxes.dtype, device=pred.boxes.device)
+    )
 
 
 @dataclass
@@ -87,7 +92,12 @@ def model_predictors(
         )
     name = name or ROW_NAMES[config.loss.supervision]
     max_size = int(config.data.max_size)
-    scored = {"path": str(loaded.path), "iteration": loaded.iteration, "supervision": config.loss.supervision, "name": name}
+    scored = {
+        "path": str(loaded.path),
+        "iteration": loaded.iteration,
+        "supervision": config.loss.supervision,
+        "name": name,
+    }
     return (
         ModelPredictor(loaded.model, max_size, "gt_boxes", name),
         ModelPredictor(loaded.model, max_size, "detections", f"{name} w/ detections"),

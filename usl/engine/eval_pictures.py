@@ -7,6 +7,7 @@ Bottom row: for a few other views (evenly spread over the scene), the true masks
 instances next to the rendered predictions. Detections are drawn from ``score_threshold`` up; when
 none reaches it, the picture says so (and gives the best score) instead of showing empty panels.
 """
+
 from __future__ import annotations
 
 from typing import Any, Mapping, Sequence
@@ -17,7 +18,17 @@ import torch
 from usl.data.frames import CategoryIndex, decode_frame
 from usl.engine.eval_types import EvalInput
 from usl.engine.visualize import (
-    GRAY, birds_eye, compose_rows, draw_boxes, label, legend, mask_pair, palette, render_meshes, render_overlay, to_uint8,
+    GRAY,
+    birds_eye,
+    compose_rows,
+    draw_boxes,
+    label,
+    legend,
+    mask_pair,
+    palette,
+    render_meshes,
+    render_overlay,
+    to_uint8,
 )
 from usl.geometry.cameras import relative_transform, transform_points
 from usl.model.outputs import ObjectPredictions
@@ -42,16 +53,25 @@ def _legend_line(name: str, score: float | None, row: Mapping[str, Any] | None, 
 
 
 def evaluation_picture(
-    dataset: RecordsDataset, inp: EvalInput, position: int, pred: ObjectPredictions, title: str,
-    categories: CategoryIndex, all_poses: Sequence[torch.Tensor], rows: Mapping[int, Mapping[str, Any]],
-    uses_detections: bool = False, score_threshold: float = 0.5, num_views: int = 3,
+    dataset: RecordsDataset,
+    inp: EvalInput,
+    position: int,
+    pred: ObjectPredictions,
+    title: str,
+    categories: CategoryIndex,
+    all_poses: Sequence[torch.Tensor],
+    rows: Mapping[int, Mapping[str, Any]],
+    uses_detections: bool = False,
+    score_threshold: float = 0.5,
+    num_views: int = 3,
 ) -> np.ndarray:
     """The picture of one prediction; ``rows``: instance id -> its ``objects.jsonl`` row.
 
     Images are read again (the evaluator keeps no pixels)."""
     source = dataset.source(inp.frame.scene_id)
-    frame = decode_frame(dataset.read_scene(inp.frame.scene_id, views=[position])[0], categories, with_image=True,
-                         source=source)
+    frame = decode_frame(
+        dataset.read_scene(inp.frame.scene_id, views=[position])[0], categories, with_image=True, source=source
+    )
     pred = pred.to("cpu")
     best = float(pred.scores.max()) if len(pred) else None
     if uses_detections:
@@ -70,13 +90,19 @@ def evaluation_picture(
     truth = [inp.true_meshes[i].verts for i in pred.instance_ids.tolist() if i in inp.true_meshes]
     ids = pred.instance_ids.tolist()
     key = [(c, _legend_line(n, s, rows.get(i), i >= 0)) for c, n, s, i in zip(colors, names, scores, ids)]
-    notes = [(None, f"{frame.scene_id}, view {frame.view_id}"),
-             (None, "panels: input + boxes | prediction | top view (white: truth)"),
-             (None, "below: true masks | prediction, in other views")]
+    notes = [
+        (None, f"{frame.scene_id}, view {frame.view_id}"),
+        (None, "panels: input + boxes | prediction | top view (white: truth)"),
+        (None, "below: true masks | prediction, in other views"),
+    ]
     if uses_detections:
         notes.append((None, f"detections scoring >= {score_threshold:g}"))
-    top = [label(draw_boxes(image, pred.boxes, texts, colors), title), overlay, birds_eye(pred.verts, colors, truth, cameras),
-           legend(notes + key, title=title)]
+    top = [
+        label(draw_boxes(image, pred.boxes, texts, colors), title),
+        overlay,
+        birds_eye(pred.verts, colors, truth, cameras),
+        legend(notes + key, title=title),
+    ]
 
     bottom = []
     positions = spread_positions(dataset.num_views(frame.scene_id), position, num_views) if len(pred) else []
@@ -88,8 +114,12 @@ def evaluation_picture(
         height, width = view.size
         rendered = render_meshes(verts, pred.faces, view.K, height, width).masks.numpy()
         panel = mask_pair(
-            to_uint8(view.image), view.masks[keep].numpy(), [color_of.get(int(view.instance_ids[n]), GRAY) for n in keep],
-            rendered, colors, title=f"view {view.view_id}:",
+            to_uint8(view.image),
+            view.masks[keep].numpy(),
+            [color_of.get(int(view.instance_ids[n]), GRAY) for n in keep],
+            rendered,
+            colors,
+            title=f"view {view.view_id}:",
         )
         bottom.append(panel)
     return compose_rows([top] + ([bottom] if bottom else []))

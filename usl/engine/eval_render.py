@@ -15,6 +15,7 @@ nearest depth fall back to the projection of its vertices in front of the camera
 smallest depth), so misplaced objects are still scored by distance; an object wholly behind the
 camera gets gIoU -1 and no depth (NaN, left out of the mean).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -68,15 +69,23 @@ def render_groups(
     if len(sizes) != 1:
         raise ValueError(f"render_groups: one image size per call, got {sorted(sizes)}")
     (height, width), device = sizes.pop(), verts.device
-    mesh_group = torch.cat([torch.full((len(g.objects),), n, dtype=torch.long) for n, g in enumerate(groups)]).to(device)
+    mesh_group = torch.cat([torch.full((len(g.objects),), n, dtype=torch.long) for n, g in enumerate(groups)]).to(
+        device
+    )
     mesh_object = torch.cat([g.objects.long().cpu() for g in groups]).to(device)
     to_view = torch.stack([relative_transform(input_pose, views[g.view].cam_to_world) for g in groups]).to(device)
     view_verts = transform_points(verts.double()[mesh_object], to_view[mesh_group]).to(verts.dtype)
     meshes = Meshes.from_shared_topology(view_verts, faces)
     group_K = torch.stack([views[g.view].K for g in groups]).to(device=device, dtype=verts.dtype)
     render = rasterize_hard(
-        meshes.verts_packed(), meshes.faces_packed(), meshes.faces_packed_to_mesh_idx(), group_K, height, width,
-        mesh_view=mesh_group, num_meshes=len(mesh_group),
+        meshes.verts_packed(),
+        meshes.faces_packed(),
+        meshes.faces_packed_to_mesh_idx(),
+        group_K,
+        height,
+        width,
+        mesh_view=mesh_group,
+        num_meshes=len(mesh_group),
     )
     return GroupRender(render, mesh_group, mesh_object, view_verts, group_K[mesh_group])
 
@@ -166,7 +175,9 @@ def score_pairs(
     return out
 
 
-def _score_rendered(result: GroupRender, views: Sequence[ViewTargets], todo: list[tuple[int, int, int, int]], out: PairScores) -> None:
+def _score_rendered(
+    result: GroupRender, views: Sequence[ViewTargets], todo: list[tuple[int, int, int, int]], out: PairScores
+) -> None:
     device = result.verts.device
     index = torch.tensor([p for p, _, _, _ in todo])
     mesh = torch.tensor([m for _, m, _, _ in todo], device=device)
@@ -187,7 +198,11 @@ def _score_rendered(result: GroupRender, views: Sequence[ViewTargets], todo: lis
 
 
 def detection_masks(
-    verts: Tensor, faces: Tensor, scores: Tensor, view: ViewTargets, min_occluder_score: float = 0.5,
+    verts: Tensor,
+    faces: Tensor,
+    scores: Tensor,
+    view: ViewTargets,
+    min_occluder_score: float = 0.5,
     max_bytes: int = DEFAULT_MAX_RENDER_BYTES,
 ) -> Tensor:
     """(N, H, W) masks of N detections (meshes in ``view``'s own camera frame) for segm AP.

@@ -6,11 +6,12 @@ input views there are: (1) decode the input views and run every predictor on the
 their true masks, render every prediction into them and score its pairs; (4) 3D metrics against
 the objects table when the dataset has one.
 
-Aggregation (documented in DESIGN §6 terms): an object's "input" value is its score in the input
+Aggregation (documented in docs/design.md §6 terms): an object's "input" value is its score in the input
 view; its "views" value is the mean over the other views selected for it (objects absent from a
 view are not scored there; objects seen in no other view have no "views" value). Dataset values
 are means over objects (``eval_summary``), per predictor.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
@@ -59,7 +60,9 @@ class Prediction:
     inp: int  # index into the scene's inputs
     pred: ObjectPredictions  # on the evaluation device; instance_ids matched for detectors
     pairs: dict[int, list[int]] = field(default_factory=dict)  # view position -> object indices scored there
-    scores: dict[int, dict[int, tuple[float, float, float]]] = field(default_factory=dict)  # object -> view -> (IoU, gIoU, depth L1)
+    scores: dict[int, dict[int, tuple[float, float, float]]] = field(
+        default_factory=dict
+    )  # object -> view -> (IoU, gIoU, depth L1)
 
 
 @dataclass
@@ -116,7 +119,9 @@ def evaluate_scene(
     _score_all(meta, inputs, positions, predictions, config, device)
     rows = []
     for pr in predictions:
-        rows += _object_rows(pr, inputs[pr.inp], positions[pr.inp], predictors[pr.predictor].name, categories, config, device)
+        rows += _object_rows(
+            pr, inputs[pr.inp], positions[pr.inp], predictors[pr.predictor].name, categories, config, device
+        )
     return SceneOutcome(rows, inputs, positions, predictions)
 
 
@@ -125,8 +130,10 @@ def release_pixels(frame: FrameData) -> FrameData:
     stay in memory until all its views are scored, and a Hypersim scene has ~100 of them."""
     height, width = frame.size
     return replace(
-        frame, image=torch.zeros(()).expand(3, height, width),
-        masks=torch.zeros((), dtype=torch.bool).expand(len(frame.instance_ids), height, width), depth=None,
+        frame,
+        image=torch.zeros(()).expand(3, height, width),
+        masks=torch.zeros((), dtype=torch.bool).expand(len(frame.instance_ids), height, width),
+        depth=None,
     )
 
 
@@ -135,7 +142,9 @@ def _checked(pred: ObjectPredictions, inp: EvalInput, predictor: Predictor) -> O
     shapes = {"labels": (n,), "scores": (n,), "z": (n,), "rho": (n,), "instance_ids": (n,)}
     bad = [k for k, s in shapes.items() if tuple(getattr(pred, k).shape) != s]
     if bad or pred.verts.dim() != 3 or pred.verts.shape[0] != n:
-        raise ValueError(f"predictor {predictor.name!r} returned inconsistent ObjectPredictions (bad: {bad or ['verts']})")
+        raise ValueError(
+            f"predictor {predictor.name!r} returned inconsistent ObjectPredictions (bad: {bad or ['verts']})"
+        )
     if not predictor.uses_detections:
         expected = set(inp.frame.instance_ids.tolist())
         got = pred.instance_ids.tolist()
@@ -148,7 +157,11 @@ def _checked(pred: ObjectPredictions, inp: EvalInput, predictor: Predictor) -> O
 
 
 def _match_and_count(
-    pred: ObjectPredictions, inp: EvalInput, position: int, meta: list[dict[str, Any]], config: EvalConfig,
+    pred: ObjectPredictions,
+    inp: EvalInput,
+    position: int,
+    meta: list[dict[str, Any]],
+    config: EvalConfig,
     coco: CocoDetections | None,
 ) -> ObjectPredictions:
     frame = inp.frame
@@ -156,15 +169,23 @@ def _match_and_count(
     pred = replace(pred, instance_ids=ids.to(pred.boxes.device))
     if coco is not None:
         view = decode_view_targets(meta[position], position, wanted=(), device=pred.verts.device)
-        masks = detection_masks(pred.verts, pred.faces, pred.scores, view, config.occluder_score, config.max_render_bytes)
+        masks = detection_masks(
+            pred.verts, pred.faces, pred.scores, view, config.occluder_score, config.max_render_bytes
+        )
         height, width = frame.size
-        coco.add_image(height, width, frame.labels, frame.masks, pred.labels.cpu(), pred.scores.cpu(), pred.boxes.cpu(), masks)
+        coco.add_image(
+            height, width, frame.labels, frame.masks, pred.labels.cpu(), pred.scores.cpu(), pred.boxes.cpu(), masks
+        )
     return pred
 
 
 def _score_all(
-    meta: list[dict[str, Any]], inputs: list[EvalInput], positions: list[int], predictions: list[Prediction],
-    config: EvalConfig, device: torch.device,
+    meta: list[dict[str, Any]],
+    inputs: list[EvalInput],
+    positions: list[int],
+    predictions: list[Prediction],
+    config: EvalConfig,
+    device: torch.device,
 ) -> None:
     """Decode the needed views chunk by chunk and score every prediction's pairs that fall in them."""
     wanted: dict[int, set[int]] = {}
@@ -184,7 +205,9 @@ def _score_all(
                 continue
             pairs = torch.tensor([(o, n, target[n][ids[o]]) for o, n, _ in todo], dtype=torch.long)
             pose = inputs[pr.inp].frame.cam_to_world.to(device)
-            scored = score_pairs(pr.pred.verts, pr.pred.faces, pose, views, pairs, config.occlusion, config.max_render_bytes)
+            scored = score_pairs(
+                pr.pred.verts, pr.pred.faces, pose, views, pairs, config.occlusion, config.max_render_bytes
+            )
             values = zip(scored.iou.tolist(), scored.giou.tolist(), scored.depth_l1.tolist())
             for (o, _, v), value in zip(todo, values):
                 pr.scores.setdefault(o, {})[v] = value
@@ -196,7 +219,12 @@ def _nanmean(values: list[float]) -> float:
 
 
 def _object_rows(
-    pr: Prediction, inp: EvalInput, position: int, name: str, categories: CategoryIndex, config: EvalConfig,
+    pr: Prediction,
+    inp: EvalInput,
+    position: int,
+    name: str,
+    categories: CategoryIndex,
+    config: EvalConfig,
     device: torch.device,
 ) -> list[dict[str, Any]]:
     """One row per scored object. ``label`` is the predicted class, ``category`` the true one's name (what
@@ -211,10 +239,18 @@ def _object_rows(
         own = pr.scores[o][position]
         others = [score for v, score in pr.scores[o].items() if v != position]
         row = {
-            "predictor": name, "scene_id": frame.scene_id, "input_view": frame.view_id, "instance_id": iid,
+            "predictor": name,
+            "scene_id": frame.scene_id,
+            "input_view": frame.view_id,
+            "instance_id": iid,
             "category": categories.names[true_label[iid]],
-            "label": int(pred.labels[o]), "score": float(pred.scores[o]), "z": float(pred.z[o]), "rho": float(pred.rho[o]),
-            "mask_iou_input": own[0], "box_giou_input": own[1], "depth_l1_input": own[2],
+            "label": int(pred.labels[o]),
+            "score": float(pred.scores[o]),
+            "z": float(pred.z[o]),
+            "rho": float(pred.rho[o]),
+            "mask_iou_input": own[0],
+            "box_giou_input": own[1],
+            "depth_l1_input": own[2],
             "mask_iou_views": _nanmean([s[0] for s in others]),
             "box_giou_views": _nanmean([s[1] for s in others]),
             "depth_l1_views": _nanmean([s[2] for s in others]),
@@ -225,7 +261,9 @@ def _object_rows(
     return rows
 
 
-def _shape_metrics(pred: ObjectPredictions, inp: EvalInput, config: EvalConfig, device: torch.device) -> dict[int, dict[str, float]]:
+def _shape_metrics(
+    pred: ObjectPredictions, inp: EvalInput, config: EvalConfig, device: torch.device
+) -> dict[int, dict[str, float]]:
     """Chamfer-L2 and F1@t of each object that has a true mesh, in the input camera frame."""
     ids = pred.instance_ids.tolist()
     chosen = [o for o, iid in enumerate(ids) if iid in inp.true_meshes]
@@ -234,7 +272,10 @@ def _shape_metrics(pred: ObjectPredictions, inp: EvalInput, config: EvalConfig, 
     frame = inp.frame
     gen = torch.Generator(device=device).manual_seed(stable_seed(config.seed, frame.scene_id, frame.view_id))
     predicted = Meshes.from_shared_topology(pred.verts[chosen], pred.faces)
-    true = Meshes([inp.true_meshes[ids[o]].verts.to(device) for o in chosen], [inp.true_meshes[ids[o]].faces.to(device) for o in chosen])
+    true = Meshes(
+        [inp.true_meshes[ids[o]].verts.to(device) for o in chosen],
+        [inp.true_meshes[ids[o]].faces.to(device) for o in chosen],
+    )
     result = compare_meshes(predicted, true, config.num_samples_3d, config.f1_threshold, generator=gen)
     f1_key = f"F1@{config.f1_threshold:g}"
     return {

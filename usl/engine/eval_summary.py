@@ -5,6 +5,7 @@ percent as Mesh R-CNN reports it); ``report`` scales them to each paper table's 
 Undefined values (an object seen in no other view, a pair without true depth) are left out of
 the mean, and how many objects each mean covers is reported next to it.
 """
+
 from __future__ import annotations
 
 import math
@@ -79,8 +80,11 @@ def summarize(
     for predictor in predictors:
         own = [r for r in rows if r["predictor"] == predictor.name]
         summary = PredictorSummary(
-            predictor.name, bool(predictor.predicts_layout), bool(predictor.predicts_shape),
-            bool(predictor.uses_detections), num_objects=len(own),
+            predictor.name,
+            bool(predictor.predicts_layout),
+            bool(predictor.predicts_shape),
+            bool(predictor.uses_detections),
+            num_objects=len(own),
         )
         summary.metrics, summary.counts = mean_over_objects(own)
         for category in sorted({r["category"] for r in own if "category" in r}):

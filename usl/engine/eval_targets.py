@@ -4,6 +4,7 @@ Masks of other views are decoded only for the instances that are scored there an
 views of the chunk being evaluated: a Hypersim scene has ~100 views x ~50 instances of
 1024x768 masks, far too many to hold at once.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass

@@ -4,6 +4,7 @@ The model and every baseline of the paper's tables are *predictors*: callables m
 input views to one :class:`~usl.model.outputs.ObjectPredictions` each. The evaluator treats them
 all alike, so a table row is just a predictor with a name.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass

@@ -12,6 +12,7 @@ that (object, view) pair is skipped, never scored as 0):
   frames in the track"), with F from ``data_specs/scannet.yaml`` tracking.eval_view_fraction;
 * ``"auto"``: ``furthest:F`` when the dataset spec has ``tracking.eval_view_fraction``, else ``all``.
 """
+
 from __future__ import annotations
 
 import math
@@ -43,7 +44,9 @@ def select_input_views(pattern: str, num_views: int) -> list[int]:
 class ViewSelection(Protocol):
     """Picks, per object of an input view, the other views that score it."""
 
-    def __call__(self, input_position: int, view_ids: Sequence[int], presence: Mapping[int, Sequence[int]]) -> dict[int, list[int]]:
+    def __call__(
+        self, input_position: int, view_ids: Sequence[int], presence: Mapping[int, Sequence[int]]
+    ) -> dict[int, list[int]]:
         """``presence``: instance id -> positions where it is visible; returns instance id -> positions."""
         ...
 
@@ -52,7 +55,9 @@ class ViewSelection(Protocol):
 class AllOtherViews:
     """Every other view in which the object appears."""
 
-    def __call__(self, input_position: int, view_ids: Sequence[int], presence: Mapping[int, Sequence[int]]) -> dict[int, list[int]]:
+    def __call__(
+        self, input_position: int, view_ids: Sequence[int], presence: Mapping[int, Sequence[int]]
+    ) -> dict[int, list[int]]:
         return {iid: [p for p in positions if p != input_position] for iid, positions in presence.items()}
 
 
@@ -66,7 +71,9 @@ class FurthestFraction:
         if not 0.0 < self.fraction <= 1.0:
             raise UslError(f"other views: the fraction must be in (0, 1], got {self.fraction}")
 
-    def __call__(self, input_position: int, view_ids: Sequence[int], presence: Mapping[int, Sequence[int]]) -> dict[int, list[int]]:
+    def __call__(
+        self, input_position: int, view_ids: Sequence[int], presence: Mapping[int, Sequence[int]]
+    ) -> dict[int, list[int]]:
         t0 = view_ids[input_position]
         out = {}
         for iid, positions in presence.items():

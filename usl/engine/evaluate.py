@@ -5,6 +5,7 @@ The metric definitions are in ``eval_render`` (pairs), ``eval_scene`` (aggregati
 ``eval_views`` (which views), ``eval_detection`` (matching, AP) and ``baselines``; the pictures
 and their index in ``eval_gallery``.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -28,7 +29,6 @@ from usl.engine.report import choose_layout
 from usl.records import RecordsDataset, UslError
 
 
-
 @dataclass
 class EvalRun:
     header: dict[str, Any]
@@ -41,7 +41,10 @@ class EvalRun:
 def dataset_spec(manifest: dict[str, Any]) -> dict[str, Any]:
     """The dataset's spec (data_specs, when it is a known dataset) overlaid with the manifest's own facts."""
     base = dict(load_dataset_spec(manifest["name"])) if manifest.get("name") in DATASETS else {}
-    return {**base, **{k: v for k, v in manifest.items() if k in ("name", "categories", "layout") or (k == "baselines" and v)}}
+    return {
+        **base,
+        **{k: v for k, v in manifest.items() if k in ("name", "categories", "layout") or (k == "baselines" and v)},
+    }
 
 
 def run_evaluation(
@@ -74,12 +77,20 @@ def run_evaluation(
     scenes = scenes[:max_scenes] if max_scenes else scenes
     if not scenes:
         raise UslError(f"{root}: split {split!r} has no scenes to evaluate")
-    coco = {p: CocoDetections(categories.ids, categories.names) for p, pr in enumerate(predictors) if pr.uses_detections}
+    coco = {
+        p: CocoDetections(categories.ids, categories.names) for p, pr in enumerate(predictors) if pr.uses_detections
+    }
     counts = {pr.name: DetectionCounts() for pr in predictors if pr.uses_detections}
     rows: list[dict[str, Any]] = []
     num_inputs = 0
-    gallery = Gallery(Path(pictures_dir or "."), num_pictures if pictures_dir else 0, pictures_by, predictors, categories,
-                      picture_score)
+    gallery = Gallery(
+        Path(pictures_dir or "."),
+        num_pictures if pictures_dir else 0,
+        pictures_by,
+        predictors,
+        categories,
+        picture_score,
+    )
     gallery.start(len(scenes))
     bar = tqdm(scenes, desc=f"evaluating {dataset.manifest['name']}/{split}", unit="scene", disable=not progress)
     for scene_index, scene_id in enumerate(bar):
@@ -98,8 +109,12 @@ def run_evaluation(
     average_precision = {predictors[p].name: c.evaluate() for p, c in coco.items()}
     summaries = summarize(predictors, rows, counts, average_precision)
     header = {
-        "dataset": dataset.manifest["name"], "root": str(root), "split": split, "num_scenes": len(scenes),
-        "num_input_views": num_inputs, "config": asdict(config),
+        "dataset": dataset.manifest["name"],
+        "root": str(root),
+        "split": split,
+        "num_scenes": len(scenes),
+        "num_input_views": num_inputs,
+        "config": asdict(config),
     }
     layout = choose_layout(header["dataset"], summaries) if table_layout == "auto" else table_layout
     return EvalRun(header, summaries, rows, layout, gallery.write_index(rows))
@@ -108,8 +123,10 @@ def run_evaluation(
 def build_predictors(args: argparse.Namespace, spec: dict[str, Any]) -> tuple[list[Predictor], dict[str, Any] | None]:
     """The table rows asked for on the command line, in the paper's order, and the checkpoint the
     model rows score (path, iteration, supervision, row name; None without model rows)."""
-    wanted = [r.strip() for r in args.rows.split(",") if r.strip()] if args.rows else (
-        ["random", "fixed"] + (["model", "layout_only"] if args.checkpoint else [])
+    wanted = (
+        [r.strip() for r in args.rows.split(",") if r.strip()]
+        if args.rows
+        else (["random", "fixed"] + (["model", "layout_only"] if args.checkpoint else []))
     )
     unknown = [r for r in wanted if r not in ROWS]
     if unknown:
@@ -121,7 +138,9 @@ def build_predictors(args: argparse.Namespace, spec: dict[str, Any]) -> tuple[li
     for row in ("random", "fixed", "sphere_true_depth"):
         key = "fixed" if row == "sphere_true_depth" else row
         if row in wanted and key not in baselines:
-            raise UslError(f"--rows {row}: the dataset spec of {spec.get('name')!r} has no {key}_depth baseline parameters")
+            raise UslError(
+                f"--rows {row}: the dataset spec of {spec.get('name')!r} has no {key}_depth baseline parameters"
+            )
     model = detector = scored = None
     if needs_model:
         from usl.engine.eval_model import model_predictors  # imports the model only when it is used

@@ -7,6 +7,7 @@
   the logs are.
 Console lines go through ``tqdm.write`` so the progress bar stays intact.
 """
+
 from __future__ import annotations
 
 import time
@@ -46,8 +47,10 @@ class TrainingFeedback:
         trainable = sum(p.numel() for p in model.parameters() if p.requires_grad)
         device = next(model.parameters()).device
         verb = f"resuming at iteration {iteration}" if resumed else "starting"
-        self.say(f"{verb}: {cfg.name}, {params:,} parameters ({trainable:,} trainable), iterations "
-                 f"{iteration} -> {cfg.optim.max_iter} on {device}, run folder {run_dir}")
+        self.say(
+            f"{verb}: {cfg.name}, {params:,} parameters ({trainable:,} trainable), iterations "
+            f"{iteration} -> {cfg.optim.max_iter} on {device}, run folder {run_dir}"
+        )
         if self.validation is not None and self.validation.problem:
             self.say(self.validation.problem)
 
@@ -90,6 +93,8 @@ class TrainingFeedback:
         logs = [self.run_dir / LOG_NAME, self.run_dir / CSV_NAME]
         logs += [self.run_dir / VALIDATION_CSV] if (self.run_dir / VALIDATION_CSV).is_file() else []
         logs += [curves] if curves is not None else []
-        self.say(f"{state} at iteration {iteration} after {_duration(time.perf_counter() - self.start)}; "
-                 f"final checkpoint {checkpoint}; logs: {', '.join(str(p) for p in logs)}")
+        self.say(
+            f"{state} at iteration {iteration} after {_duration(time.perf_counter() - self.start)}; "
+            f"final checkpoint {checkpoint}; logs: {', '.join(str(p) for p in logs)}"
+        )
         self.file.close()

@@ -12,6 +12,7 @@ height, ``aspectRatio`` from K and the width; glTF has no principal point, so an
 not represented) and the input image as a textured plane filling the camera's view behind the
 objects (node ``input_image``).
 """
+
 from __future__ import annotations
 
 import math
@@ -47,13 +48,27 @@ def object_meshes(pred: ObjectPredictions, categories: Sequence[str], axes: str)
     flip = axes_matrix(axes)
     faces = pred.faces.cpu().numpy()
     scene = trimesh.Scene()
-    objects = zip(object_names(pred, categories), pred.verts.cpu().double().numpy(), palette(len(pred)),
-                  pred.labels.tolist(), pred.scores.tolist(), pred.z.tolist(), pred.rho.tolist(), pred.boxes.tolist())
+    objects = zip(
+        object_names(pred, categories),
+        pred.verts.cpu().double().numpy(),
+        palette(len(pred)),
+        pred.labels.tolist(),
+        pred.scores.tolist(),
+        pred.z.tolist(),
+        pred.rho.tolist(),
+        pred.boxes.tolist(),
+    )
     for name, verts, color, label, score, z, rho, box in objects:
         mesh = trimesh.Trimesh(verts @ flip.T, faces, process=False)
         mesh.visual.vertex_colors = np.array([*color, 255], dtype=np.uint8)
-        extras = {"category": categories[int(label)], "category_id": int(label), "score": round(float(score), 6),
-                  "z": float(z), "rho": float(rho), "box_xyxy": [round(float(v), 3) for v in box]}
+        extras = {
+            "category": categories[int(label)],
+            "category_id": int(label),
+            "score": round(float(score), 6),
+            "z": float(z),
+            "rho": float(rho),
+            "box_xyxy": [round(float(v), 3) for v in box],
+        }
         scene.add_geometry(mesh, node_name=name, geom_name=name, metadata=extras)
     return scene
 
@@ -75,21 +90,31 @@ def image_plane(image: np.ndarray, K: np.ndarray, depth: float, axes: str) -> tr
     corners = torch.tensor([[0.0, 0.0], [width, 0.0], [width, height], [0.0, height]], dtype=torch.float64)
     points = unproject(corners, torch.full((4,), float(depth), dtype=torch.float64), torch.from_numpy(K).double())
     uv = np.array([[0.0, 1.0], [1.0, 1.0], [1.0, 0.0], [0.0, 0.0]])  # trimesh's uv origin is bottom-left
-    material = trimesh.visual.material.PBRMaterial(baseColorTexture=Image.fromarray(image), doubleSided=True,
-                                                   metallicFactor=0.0, roughnessFactor=1.0)
+    material = trimesh.visual.material.PBRMaterial(
+        baseColorTexture=Image.fromarray(image), doubleSided=True, metallicFactor=0.0, roughnessFactor=1.0
+    )
     faces = np.array([[0, 2, 1], [0, 3, 2]])  # facing the camera (-z in OpenCV axes)
-    return trimesh.Trimesh(points.numpy() @ axes_matrix(axes).T, faces, process=False,
-                           visual=trimesh.visual.TextureVisuals(uv=uv, material=material))
+    return trimesh.Trimesh(
+        points.numpy() @ axes_matrix(axes).T,
+        faces,
+        process=False,
+        visual=trimesh.visual.TextureVisuals(uv=uv, material=material),
+    )
 
 
-def prediction_scene(pred: ObjectPredictions, categories: Sequence[str], image: np.ndarray, K: np.ndarray,
-                     axes: str = "gltf") -> trimesh.Scene:
+def prediction_scene(
+    pred: ObjectPredictions, categories: Sequence[str], image: np.ndarray, K: np.ndarray, axes: str = "gltf"
+) -> trimesh.Scene:
     """Objects, the input camera and the image plane (behind the farthest object)."""
     scene = object_meshes(pred, categories, axes)
     height, width = image.shape[:2]
     depth = 1.25 * float(pred.verts[..., 2].max()) if len(pred) else 1.0
-    scene.add_geometry(image_plane(image, K, max(depth, 1e-3), axes), node_name=IMAGE_NODE, geom_name=IMAGE_NODE,
-                       metadata={"depth_m": depth})
+    scene.add_geometry(
+        image_plane(image, K, max(depth, 1e-3), axes),
+        node_name=IMAGE_NODE,
+        geom_name=IMAGE_NODE,
+        metadata={"depth_m": depth},
+    )
     scene.camera = gltf_camera(K, width, height)
     pose = np.eye(4)
     pose[:3, :3] = axes_matrix(axes) @ opencv_to_opengl_camera()[:3, :3].numpy()  # glTF camera frame -> written frame

@@ -1,4 +1,5 @@
 """Optimizer and learning-rate schedule from ``OptimConfig`` (the paper's recipe table)."""
+
 from __future__ import annotations
 
 from bisect import bisect_right

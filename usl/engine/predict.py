@@ -6,6 +6,7 @@ image as a textured plane, in glTF's +Y-up axes (``usl.engine.gltf_scene``) -- p
 ``.ply`` (objects only) and ``.html`` (a self-contained 3D viewer of the GLB) with ``--formats``,
 and ``<name>_overlay.png`` (the meshes rendered over the image, with boxes and scores).
 """
+
 from __future__ import annotations
 
 import json
@@ -81,9 +82,15 @@ def image_frame(image: np.ndarray, K: torch.Tensor, name: str) -> FrameData:
     """An unannotated input view for the model."""
     height, width = image.shape[:2]
     return FrameData(
-        scene_id=name, view_id=0, image=torch.from_numpy(image).permute(2, 0, 1).float().div_(255.0), K=K,
-        cam_to_world=torch.eye(4, dtype=torch.float64), instance_ids=torch.zeros(0, dtype=torch.int64),
-        labels=torch.zeros(0, dtype=torch.int64), boxes=torch.zeros(0, 4), masks=torch.zeros(0, height, width, dtype=torch.bool),
+        scene_id=name,
+        view_id=0,
+        image=torch.from_numpy(image).permute(2, 0, 1).float().div_(255.0),
+        K=K,
+        cam_to_world=torch.eye(4, dtype=torch.float64),
+        instance_ids=torch.zeros(0, dtype=torch.int64),
+        labels=torch.zeros(0, dtype=torch.int64),
+        boxes=torch.zeros(0, 4),
+        masks=torch.zeros(0, height, width, dtype=torch.bool),
         depth_min=torch.zeros(0),
     )
 
@@ -97,8 +104,15 @@ class ImageResult:
     best_score: float | None = None  # highest detection score of all (None: no detection at all)
 
 
-def write_meshes(pred: ObjectPredictions, categories: Sequence[str], image: np.ndarray, K: np.ndarray, stem: Path,
-                 formats: Sequence[str], axes: str) -> list[Path]:
+def write_meshes(
+    pred: ObjectPredictions,
+    categories: Sequence[str],
+    image: np.ndarray,
+    K: np.ndarray,
+    stem: Path,
+    formats: Sequence[str],
+    axes: str,
+) -> list[Path]:
     """GLB and HTML hold the whole scene (objects, camera, image plane); OBJ and PLY the objects only."""
     written = []
     for fmt in formats:
@@ -120,9 +134,16 @@ def write_meshes(pred: ObjectPredictions, categories: Sequence[str], image: np.n
 
 
 def predict_images(
-    detect: Detect, image_paths: Sequence[str | Path], out_dir: str | Path, categories: Sequence[str],
-    K: np.ndarray | None = None, fov_deg: float | None = None, formats: Sequence[str] = ("glb",),
-    score_threshold: float = 0.5, axes: str = "gltf", opencv_k: bool = False,
+    detect: Detect,
+    image_paths: Sequence[str | Path],
+    out_dir: str | Path,
+    categories: Sequence[str],
+    K: np.ndarray | None = None,
+    fov_deg: float | None = None,
+    formats: Sequence[str] = ("glb",),
+    score_threshold: float = 0.5,
+    axes: str = "gltf",
+    opencv_k: bool = False,
 ) -> dict[str, ImageResult]:
     """Run ``detect`` on each image and write meshes and overlays; returns what was made per image."""
     bad = [f for f in formats if f not in FORMATS]

@@ -10,10 +10,11 @@ textured plane behind the objects; ``--formats`` adds ``html`` (a self-contained
 ``<name>_overlay.png``, the meshes rendered over the image with boxes and scores.
 
 Axes: glTF's, +Y up with the camera looking down -Z (``diag(1, -1, -1)`` applied to the OpenCV
-camera frame of DESIGN.md §2), metres; ``--axes opencv`` keeps x right, y down, z forward. ``K``
-follows DESIGN.md §2 (pixel centres at +0.5); a K from an OpenCV calibration (integer pixel
+camera frame of docs/design.md §2), metres; ``--axes opencv`` keeps x right, y down, z forward. ``K``
+follows docs/design.md §2 (pixel centres at +0.5); a K from an OpenCV calibration (integer pixel
 centres) needs ``--opencv-k``.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -28,8 +29,12 @@ FORMATS = ("glb", "obj", "ply", "html")  # here, not in usl.engine.predict: --he
 
 
 def parser() -> argparse.ArgumentParser:
-    common = common_options(out="output folder", out_default="predictions",
-                            device="where the model runs (auto: cuda when available)", quiet="print nothing but errors")
+    common = common_options(
+        out="output folder",
+        out_default="predictions",
+        device="where the model runs (auto: cuda when available)",
+        quiet="print nothing but errors",
+    )
     p = make_parser(COMMAND, __doc__, parents=[common])
     p.add_argument("images", nargs="+", help="input image file(s)")
     p.add_argument("--checkpoint", required=True, help="checkpoint file or training run folder")
@@ -39,8 +44,12 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--opencv-k", action="store_true", help="K puts pixel centres at integers (OpenCV): shift by +0.5")
     p.add_argument("--formats", default="glb", help=f"comma-separated output formats from {', '.join(FORMATS)}")
     p.add_argument("--score-threshold", type=float, default=0.5, help="keep detections scoring at least this")
-    p.add_argument("--axes", default="gltf", choices=("gltf", "opencv", "opengl"),
-                   help="axes of the written files: gltf (+Y up, looking down -Z; 'opengl' is the same) or opencv")
+    p.add_argument(
+        "--axes",
+        default="gltf",
+        choices=("gltf", "opencv", "opengl"),
+        help="axes of the written files: gltf (+Y up, looking down -Z; 'opengl' is the same) or opencv",
+    )
     return p
 
 
@@ -54,10 +63,22 @@ def main(argv: Sequence[str] | None = None) -> int:
         formats = [f.strip() for f in args.formats.split(",") if f.strip()]
         missing = [p for p in args.images if not Path(p).is_file()]
         if missing:  # checked before the model loads; predict_images decodes them all before any work
-            raise UslError(f"image {missing[0]} does not exist" + (f" (and {len(missing) - 1} more)" if len(missing) > 1 else ""))
+            raise UslError(
+                f"image {missing[0]} does not exist" + (f" (and {len(missing) - 1} more)" if len(missing) > 1 else "")
+            )
         detect, categories = model_detector(args.checkpoint, resolve_device(args.device))
-        results = predict_images(detect, args.images, args.out, categories, K, args.fov, formats,
-                                 args.score_threshold, "gltf" if args.axes == "opengl" else args.axes, args.opencv_k)
+        results = predict_images(
+            detect,
+            args.images,
+            args.out,
+            categories,
+            K,
+            args.fov,
+            formats,
+            args.score_threshold,
+            "gltf" if args.axes == "opengl" else args.axes,
+            args.opencv_k,
+        )
     except UslError as exc:
         print(f"{COMMAND}: error: {exc}", file=sys.stderr)
         return 2
@@ -66,8 +87,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             continue
         if result.num_objects == 0:
             best = "no detection at all" if result.best_score is None else f"best score {result.best_score:.2f}"
-            print(f"{image}: no detection scores >= {args.score_threshold:g} ({best}); wrote only "
-                  f"{', '.join(str(f) for f in result.files)} (lower --score-threshold to see more)")
+            print(
+                f"{image}: no detection scores >= {args.score_threshold:g} ({best}); wrote only "
+                f"{', '.join(str(f) for f in result.files)} (lower --score-threshold to see more)"
+            )
         else:
             print(f"{image}: {result.num_objects} object(s): {', '.join(str(f) for f in result.files)}")
     return 0

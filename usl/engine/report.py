@@ -7,6 +7,7 @@ Table layouts (rows: predictors in evaluation order):
 Predictors that detect their own objects add a detection table (COCO AP and AP50, box and mask).
 Datasets with several categories add the same columns per true category (``category_table``).
 """
+
 from __future__ import annotations
 
 import json
@@ -83,7 +84,10 @@ def markdown_table(summaries: Sequence[PredictorSummary], layout: str) -> str:
         det_rows = [
             [s.name]
             + [f"{s.detection.get(k, 0.0):.1f}" for k in ("bbox/AP", "bbox/AP50", "segm/AP", "segm/AP50")]
-            + [f"{s.detection.get('matched', 0)} / {s.detection.get('ground_truth', 0)}", str(s.detection.get("detections", 0))]
+            + [
+                f"{s.detection.get('matched', 0)} / {s.detection.get('ground_truth', 0)}",
+                str(s.detection.get("detections", 0)),
+            ]
             for s in detectors
         ]
         text += "\n\n" + _markdown(det_header, det_rows, [":---"] + [":---:"] * 6)
@@ -98,8 +102,11 @@ def category_table(summaries: Sequence[PredictorSummary], layout: str) -> str:
         return ""
     columns = COLUMNS[layout]
     rows = [
-        [s.name, name, str(s.categories[name]["num_objects"])] + [_cell(s.categories[name]["metrics"].get(c.metric), c) for c in columns]
-        for s in summaries for name in names if name in s.categories
+        [s.name, name, str(s.categories[name]["num_objects"])]
+        + [_cell(s.categories[name]["metrics"].get(c.metric), c) for c in columns]
+        for s in summaries
+        for name in names
+        if name in s.categories
     ]
     header = ["Model", "Category", "Objects"] + [c.title for c in columns]
     return _markdown(header, rows, [":---", ":---"] + [":---:"] * (len(header) - 2))
@@ -124,8 +131,12 @@ def checkpoint_line(scored: Mapping[str, Any] | None) -> str:
 
 
 def write_report(
-    out_dir: str | Path, header: dict[str, Any], summaries: Sequence[PredictorSummary], rows: Sequence[dict[str, Any]],
-    layout: str, links: Mapping[str, str] | None = None,
+    out_dir: str | Path,
+    header: dict[str, Any],
+    summaries: Sequence[PredictorSummary],
+    rows: Sequence[dict[str, Any]],
+    layout: str,
+    links: Mapping[str, str] | None = None,
 ) -> dict[str, Path]:
     """Write ``metrics.json``, ``objects.jsonl`` and ``table.md`` into ``out_dir``; returns their paths.
 
@@ -142,5 +153,7 @@ def write_report(
             f.write(json.dumps(json_safe(row)) + "\n")
     title = f"# {header.get('dataset', 'dataset')} / {header.get('split', '')}: {header.get('num_input_views', 0)} input views\n\n"
     footer = "".join(f"\n{name.capitalize()}: [{target}]({target})\n" for name, target in links.items())
-    paths["table"].write_text(title + checkpoint_line(header.get("checkpoint")) + markdown_table(summaries, layout) + footer)
+    paths["table"].write_text(
+        title + checkpoint_line(header.get("checkpoint")) + markdown_table(summaries, layout) + footer
+    )
     return paths

@@ -3,6 +3,7 @@
 On resume the CSV keeps its rows up to the checkpoint's iteration and drops later ones (written
 by the interrupted run after its last checkpoint), so the file reads as one uninterrupted run.
 """
+
 from __future__ import annotations
 
 import csv

@@ -4,6 +4,7 @@ A rare non-finite step (an outlier batch) is skipped and training goes on; many 
 corrupt data or divergence, and a run that "finishes" that way only looks normal in metrics.csv.
 Every rank skips together (the skip decision is all-reduced), so every rank stops together.
 """
+
 from __future__ import annotations
 
 from collections import deque

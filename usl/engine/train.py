@@ -1,5 +1,6 @@
 """The training loop of ``usl-train`` (command line: ``usl.engine.train_cli``, which also runs
 ``torchrun -m usl.engine.train``): data, guarded steps, logs, checkpoints, exact resume."""
+
 from __future__ import annotations
 
 import math
@@ -38,7 +39,9 @@ def fill_dataset_fields(cfg: Config, records: RecordsDataset) -> None:
         layout = records.manifest.get("layout")
         if not layout:
             raise ConfigError(f"{records.root}/manifest.json has no 'layout' ranges; set model.layout_range.*")
-        cfg.model.layout_range = type(cfg.model.layout_range)(**{k: float(layout[k]) for k in ("z0", "z1", "rho0", "rho1")})
+        cfg.model.layout_range = type(cfg.model.layout_range)(
+            **{k: float(layout[k]) for k in ("z0", "z1", "rho0", "rho1")}
+        )
 
 
 def seed_everything(seed: int, rank: int) -> None:
@@ -72,7 +75,10 @@ class Meter:
 
     def means(self) -> dict[str, float]:
         """The interval's means, and ``KEY_max`` for each key in ``PEAKS``."""
-        return {**{k: self.sums[k] / self.counts[k] for k in self.sums}, **{f"{k}_max": v for k, v in self.peaks.items()}}
+        return {
+            **{k: self.sums[k] / self.counts[k] for k in self.sums},
+            **{f"{k}_max": v for k, v in self.peaks.items()},
+        }
 
 
 class Trainer:
@@ -87,7 +93,10 @@ class Trainer:
         seed_everything(cfg.train.seed, info.rank)
         self.step = TrainStep(cfg, info)
         dataset = MultiViewDataset(
-            records, cfg.data, CategoryIndex(records.categories), seed=cfg.train.seed,
+            records,
+            cfg.data,
+            CategoryIndex(records.categories),
+            seed=cfg.train.seed,
             with_true_meshes=cfg.loss.supervision == "3d",
         )
         if len(dataset) // info.world_size < cfg.train.batch_size:
@@ -95,7 +104,9 @@ class Trainer:
                 f"{records.root} split {cfg.data.train_split!r} has {len(dataset)} input views: too few for "
                 f"train.batch_size={cfg.train.batch_size} on each of {info.world_size} process(es)"
             )
-        self.sampler = ShardedBatchSampler(len(dataset), cfg.train.batch_size, info.rank, info.world_size, cfg.train.seed)
+        self.sampler = ShardedBatchSampler(
+            len(dataset), cfg.train.batch_size, info.rank, info.world_size, cfg.train.seed
+        )
         self.loader = build_train_loader(dataset, self.sampler, cfg.data.num_workers)
         self.iteration, self.epoch, self.batch_in_epoch = 0, 0, 0
         self.skip_guard = SkipGuard(cfg.train.max_skipped_fraction, cfg.train.skip_window)
@@ -153,7 +164,9 @@ class Trainer:
                     data_time = time.perf_counter() - last
                     values = self.step(batch, diagnostics=(self.iteration + 1) % cfg.train.log_every == 0)
                     if values["skipped"]:
-                        tqdm.write(f"{COMMAND}: non-finite loss or gradient at iteration {self.iteration + 1}; step skipped")
+                        tqdm.write(
+                            f"{COMMAND}: non-finite loss or gradient at iteration {self.iteration + 1}; step skipped"
+                        )
                     self.skip_guard.update(values["skipped"], self.iteration + 1)
                     self.iteration += 1
                     self.batch_in_epoch += 1

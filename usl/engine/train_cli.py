@@ -14,6 +14,7 @@ The run folder gets ``config.yaml`` (the resolved config, ``data.root`` absolute
 ``validation.csv`` (periodic validation on ``data.val_split``, keys ``val.*``), ``curves.png``
 (losses and validation metrics against iterations) and ``checkpoints/`` (``usl.engine.checkpoint``).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -35,18 +36,31 @@ _SHORTCUTS = {"device": "train.device", "seed": "train.seed", "workers": "data.n
 def parser() -> argparse.ArgumentParser:
     common = common_options(
         out="run folder (default: runs/<config name>; with --resume: the checkpoint's run folder)",
-        workers="data loader processes (shortcut for data.num_workers=N; default: the recipe's)", workers_default=None,
-        device="shortcut for train.device=... (default: the recipe's)", device_default=None,
-        seed="shortcut for train.seed=N (default: the recipe's)", seed_default=None, quiet=None,
+        workers="data loader processes (shortcut for data.num_workers=N; default: the recipe's)",
+        workers_default=None,
+        device="shortcut for train.device=... (default: the recipe's)",
+        device_default=None,
+        seed="shortcut for train.seed=N (default: the recipe's)",
+        seed_default=None,
+        quiet=None,
     )
     p = make_parser(COMMAND, __doc__, parents=[common])
     p.add_argument("--config", help="recipe name (tiny, scene_shapes, hypersim, scannet) or a YAML file")
-    p.add_argument("--resume", nargs="?", const="", default=None, metavar="CHECKPOINT",
-                   help="continue from CHECKPOINT, or from the run folder's newest checkpoint")
+    p.add_argument(
+        "--resume",
+        nargs="?",
+        const="",
+        default=None,
+        metavar="CHECKPOINT",
+        help="continue from CHECKPOINT, or from the run folder's newest checkpoint",
+    )
     show = p.add_mutually_exclusive_group()
     show.add_argument("--print-config", action="store_true", help="print the resolved config as YAML and exit")
-    show.add_argument("--list-keys", action="store_true",
-                      help="list every config key with its type, value (in --config, if given) and doc line, and exit")
+    show.add_argument(
+        "--list-keys",
+        action="store_true",
+        help="list every config key with its type, value (in --config, if given) and doc line, and exit",
+    )
     p.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides, e.g. optim.lr=0.01")
     deprecated_alias(p, "--output-dir", "--out")
     return p

@@ -1,5 +1,6 @@
 """One guarded optimisation step: the model (DDP-wrapped when distributed), optimizer, LR schedule,
 autocast on CUDA, gradient clipping, and a NaN/inf guard that skips the step on every rank."""
+
 from __future__ import annotations
 
 import math
@@ -84,5 +85,7 @@ class TrainStep:
             self.scheduler.step()
         values = {k: float(v.detach()) for k, v in losses.items()}
         # grad_norm is the norm before clipping; clipped's mean over a log interval is the share of steps clipped
-        values.update(grad_norm=float(grad_norm), clipped=float(ok and 0 < clip < float(grad_norm)), skipped=float(not ok))
+        values.update(
+            grad_norm=float(grad_norm), clipped=float(ok and 0 < clip < float(grad_norm)), skipped=float(not ok)
+        )
         return values

@@ -5,6 +5,7 @@ of the first ``val.num_scenes`` scenes; Mask IoU and Box gIoU in the input view 
 Depth L1 and, where the split has 3D ground truth, Chamfer and F1 go to ``validation.csv`` as
 ``val/<metric>``. The random state is restored afterwards, so validating never changes training.
 """
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -44,13 +45,20 @@ class PeriodicValidation:
         """Evaluate, log the row and return the metrics that are defined (``val/<metric>``)."""
         cfg = self.cfg
         device = next(model.parameters()).device
-        evaluation = EvalConfig(input_views=cfg.val.input_views, num_samples_3d=cfg.val.samples_3d, seed=cfg.train.seed,
-                                device=str(device))
+        evaluation = EvalConfig(
+            input_views=cfg.val.input_views, num_samples_3d=cfg.val.samples_3d, seed=cfg.train.seed, device=str(device)
+        )
         state = rng_state()
         try:
             with torch.no_grad():
-                run = run_evaluation(cfg.data.root, cfg.data.val_split, [ModelPredictor(model, cfg.data.max_size)],
-                                     evaluation, max_scenes=cfg.val.num_scenes or None, progress=False)
+                run = run_evaluation(
+                    cfg.data.root,
+                    cfg.data.val_split,
+                    [ModelPredictor(model, cfg.data.max_size)],
+                    evaluation,
+                    max_scenes=cfg.val.num_scenes or None,
+                    progress=False,
+                )
         finally:
             set_rng_state(state)  # (model.predict puts the model back in training mode itself)
         (summary,) = run.summaries

@@ -12,6 +12,7 @@
   camera's frame is used because datasets disagree on the world's up axis.
 Colours follow the object index, so one object has one colour in every panel.
 """
+
 from __future__ import annotations
 
 import colorsys
@@ -46,7 +47,9 @@ def to_uint8(image: Tensor | np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(image)
 
 
-def draw_boxes(image: np.ndarray, boxes: Tensor, texts: Sequence[str], colors: Sequence[tuple[int, int, int]]) -> np.ndarray:
+def draw_boxes(
+    image: np.ndarray, boxes: Tensor, texts: Sequence[str], colors: Sequence[tuple[int, int, int]]
+) -> np.ndarray:
     out = image.copy()
     thickness = max(1, round(min(out.shape[:2]) / 300))
     scale = max(0.35, min(out.shape[:2]) / 900)
@@ -64,8 +67,13 @@ def render_meshes(verts: Tensor, faces: Tensor, K: Tensor, height: int, width: i
     """Hard render of N meshes (N, V, 3) given in the camera frame of one view with intrinsics K."""
     meshes = Meshes.from_shared_topology(verts.float(), faces)
     return rasterize_hard(
-        meshes.verts_packed(), meshes.faces_packed(), meshes.faces_packed_to_mesh_idx(), K.float().to(verts.device),
-        height, width, num_meshes=verts.shape[0],
+        meshes.verts_packed(),
+        meshes.faces_packed(),
+        meshes.faces_packed_to_mesh_idx(),
+        K.float().to(verts.device),
+        height,
+        width,
+        num_meshes=verts.shape[0],
     )
 
 
@@ -85,7 +93,12 @@ def _normal_shading(depth: Tensor, K: Tensor) -> np.ndarray:
 
 
 def render_overlay(
-    image: np.ndarray, verts: Tensor, faces: Tensor, K: Tensor, colors: Sequence[tuple[int, int, int]], alpha: float = 0.75
+    image: np.ndarray,
+    verts: Tensor,
+    faces: Tensor,
+    K: Tensor,
+    colors: Sequence[tuple[int, int, int]],
+    alpha: float = 0.75,
 ) -> np.ndarray:
     """Meshes (camera frame of this image) rendered shaded over ``image`` with their outlines."""
     height, width = image.shape[:2]
@@ -106,7 +119,9 @@ def render_overlay(
     return out
 
 
-def paint_masks(image: np.ndarray, masks: np.ndarray, colors: Sequence[tuple[int, int, int]], alpha: float = 0.6) -> np.ndarray:
+def paint_masks(
+    image: np.ndarray, masks: np.ndarray, colors: Sequence[tuple[int, int, int]], alpha: float = 0.6
+) -> np.ndarray:
     """Masks (n, H, W) filled over a dimmed copy of ``image``."""
     out = image.astype(np.float32) * 0.5
     for mask, color in zip(masks, colors):
@@ -115,8 +130,12 @@ def paint_masks(image: np.ndarray, masks: np.ndarray, colors: Sequence[tuple[int
 
 
 def mask_pair(
-    image: np.ndarray, true_masks: np.ndarray, true_colors: Sequence[tuple[int, int, int]],
-    pred_masks: np.ndarray, pred_colors: Sequence[tuple[int, int, int]], title: str = "",
+    image: np.ndarray,
+    true_masks: np.ndarray,
+    true_colors: Sequence[tuple[int, int, int]],
+    pred_masks: np.ndarray,
+    pred_colors: Sequence[tuple[int, int, int]],
+    title: str = "",
 ) -> np.ndarray:
     """[true masks | rendered prediction] side by side for one view."""
     left = label(paint_masks(image, true_masks, true_colors), f"{title} true".strip())
@@ -125,8 +144,11 @@ def mask_pair(
 
 
 def birds_eye(
-    pred_verts: Tensor, colors: Sequence[tuple[int, int, int]], true_verts: Sequence[Tensor] = (),
-    cameras: Sequence[Tensor] = (), size: int = 512,
+    pred_verts: Tensor,
+    colors: Sequence[tuple[int, int, int]],
+    true_verts: Sequence[Tensor] = (),
+    cameras: Sequence[Tensor] = (),
+    size: int = 512,
 ) -> np.ndarray:
     """Top-down (x right, z up the picture) plot in the input camera frame; ``cameras``: 4x4 cam -> input-cam poses."""
     footprints = [v[:, [0, 2]].detach().cpu().double().numpy() for v in pred_verts]
@@ -167,7 +189,9 @@ def _draw_camera(canvas: np.ndarray, pose: np.ndarray, pix, length: float, color
     cv2.polylines(canvas, [pix(world[:, [0, 2]])], True, color, 2, cv2.LINE_AA)
 
 
-def legend(entries: Sequence[tuple[tuple[int, int, int] | None, str]], height: int = 320, title: str = "") -> np.ndarray:
+def legend(
+    entries: Sequence[tuple[tuple[int, int, int] | None, str]], height: int = 320, title: str = ""
+) -> np.ndarray:
     """A dark panel listing ``(colour, text)`` lines (colour None: plain text, no swatch)."""
     lines = ([(None, title)] if title else []) + list(entries)
     scale, step = 0.45, 20
@@ -190,7 +214,11 @@ def label(image: np.ndarray, text: str) -> np.ndarray:
 
 def fit_height(image: np.ndarray, height: int) -> np.ndarray:
     h, w = image.shape[:2]
-    return image if h == height else cv2.resize(image, (max(1, round(w * height / h)), height), interpolation=cv2.INTER_AREA)
+    return (
+        image
+        if h == height
+        else cv2.resize(image, (max(1, round(w * height / h)), height), interpolation=cv2.INTER_AREA)
+    )
 
 
 def compose_rows(rows: Sequence[Sequence[np.ndarray]], height: int = 320, gap: int = 4) -> np.ndarray:

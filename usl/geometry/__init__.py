@@ -1,4 +1,5 @@
-"""Geometry shared by every part of usl: cameras (DESIGN.md §2), frustum homography, meshes."""
+"""Geometry shared by every part of usl: cameras (docs/design.md §2), frustum homography, meshes."""
+
 from usl.geometry.frustum import cube_to_frustum, frustum_homography, frustum_to_cube
 from usl.geometry.icosphere import ico_sphere
 from usl.geometry.meshes import Meshes

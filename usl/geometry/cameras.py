@@ -1,10 +1,11 @@
-"""Camera conventions of DESIGN.md §2, in one place.
+"""Camera conventions of docs/design.md §2, in one place.
 
 OpenCV axes (x right, y down, z forward), pixel centres at +0.5, and a *general*
 3x3 ``K`` applied with a homogeneous divide, so Hypersim's tilt-shift cameras work
 everywhere. Every function is batched over leading dimensions and differentiable.
 Works on torch tensors; numpy callers convert with ``torch.as_tensor``.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -61,7 +62,7 @@ def transform_points(points: Tensor, transform: Tensor) -> Tensor:
 
 
 def relative_transform(cam_to_world_src: Tensor, cam_to_world_dst: Tensor) -> Tensor:
-    """``R_{src->dst} = inv(cam_to_world_dst) @ cam_to_world_src`` (DESIGN.md §2).
+    """``R_{src->dst} = inv(cam_to_world_dst) @ cam_to_world_src`` (docs/design.md §2).
 
     Takes points in camera ``src``'s frame to camera ``dst``'s frame.
     """
@@ -101,7 +102,9 @@ def opencv_to_opengl_camera() -> Tensor:
     return torch.diag(torch.tensor([1.0, -1.0, -1.0, 1.0], dtype=torch.float64))
 
 
-def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray | tuple[float, float, float] = (0.0, 1.0, 0.0)) -> np.ndarray:
+def look_at(
+    eye: np.ndarray, target: np.ndarray, up: np.ndarray | tuple[float, float, float] = (0.0, 1.0, 0.0)
+) -> np.ndarray:
     """cam_to_world (4x4 float64 numpy) of an OpenCV camera at ``eye`` looking at ``target``.
 
     ``up`` is the world's up direction (Y-up worlds: (0, 1, 0); Z-up, e.g. ScanNet: (0, 0, 1)); the

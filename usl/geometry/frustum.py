@@ -1,4 +1,4 @@
-"""The frustum homography of DESIGN.md §5: normalized cube [-1, 1]^3 <-> object frustum.
+"""The frustum homography of docs/design.md §5: normalized cube [-1, 1]^3 <-> object frustum.
 
 The shape head predicts meshes in a normalized cube with coordinates (x, y, w). The cube
 is cast into the camera frame of the input view by a true projective map (a 4x4
@@ -14,7 +14,7 @@ the object sits in the image:
 ``cameras.project``), and the camera point is ``X = d * K^-1 [u, v, 1]``. Because
 ``[K^-1 [u, v, 1]; 1/d]`` is linear in ``(x, y, w, 1)``, the map is projective for ANY
 invertible K, Hypersim's tilt-shift cameras (last row of K not [0, 0, 1]) included. For
-an upper-triangular K, d is the usual planar depth z of DESIGN.md §2.
+an upper-triangular K, d is the usual planar depth z of docs/design.md §2.
 
 Guards: the near plane is clamped to at least ``MIN_NEAR_DEPTH`` so the frustum stays in
 front of the camera, and the inverse depth of mapped points is clamped to at least
@@ -22,6 +22,7 @@ front of the camera, and the inverse depth of mapped points is clamped to at lea
 vertex offsets are not confined to the cube) would otherwise land at or behind infinity.
 Inside the cube neither clamp is active for sensible layouts, so the map is exact there.
 """
+
 from __future__ import annotations
 
 import torch
@@ -56,7 +57,7 @@ def cube_to_frustum(points_cube: Tensor, boxes: Tensor, K: Tensor, z: Tensor, rh
 
     Args:
         points_cube: (..., N, 3) points in [-1, 1]^3 (points outside map by the same formula).
-        boxes: (..., 4) xyxy 2D boxes in the pixel frame of DESIGN.md §2.
+        boxes: (..., 4) xyxy 2D boxes in the pixel frame of docs/design.md §2.
         K: (..., 3, 3) general invertible intrinsics.
         z: (...) frustum centre depth; rho: (...) frustum depth extent (metres).
     Leading dimensions broadcast. Differentiable w.r.t. points, boxes, K, z and rho.

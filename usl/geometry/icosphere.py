@@ -1,4 +1,5 @@
 """Ico-spheres: the identical initial mesh the shape head deforms for every object (paper Sec. 3.3)."""
+
 from __future__ import annotations
 
 import functools
@@ -15,16 +16,45 @@ def _icosahedron() -> tuple[Tensor, Tensor]:
     """The 12 vertices (on the unit sphere) and 20 faces of a regular icosahedron, float64."""
     t = (1.0 + math.sqrt(5.0)) / 2.0
     verts = torch.tensor(
-        [[-1, t, 0], [1, t, 0], [-1, -t, 0], [1, -t, 0],
-         [0, -1, t], [0, 1, t], [0, -1, -t], [0, 1, -t],
-         [t, 0, -1], [t, 0, 1], [-t, 0, -1], [-t, 0, 1]],
+        [
+            [-1, t, 0],
+            [1, t, 0],
+            [-1, -t, 0],
+            [1, -t, 0],
+            [0, -1, t],
+            [0, 1, t],
+            [0, -1, -t],
+            [0, 1, -t],
+            [t, 0, -1],
+            [t, 0, 1],
+            [-t, 0, -1],
+            [-t, 0, 1],
+        ],
         dtype=torch.float64,
     )
     faces = torch.tensor(
-        [[0, 11, 5], [0, 5, 1], [0, 1, 7], [0, 7, 10], [0, 10, 11],
-         [1, 5, 9], [5, 11, 4], [11, 10, 2], [10, 7, 6], [7, 1, 8],
-         [3, 9, 4], [3, 4, 2], [3, 2, 6], [3, 6, 8], [3, 8, 9],
-         [4, 9, 5], [2, 4, 11], [6, 2, 10], [8, 6, 7], [9, 8, 1]],
+        [
+            [0, 11, 5],
+            [0, 5, 1],
+            [0, 1, 7],
+            [0, 7, 10],
+            [0, 10, 11],
+            [1, 5, 9],
+            [5, 11, 4],
+            [11, 10, 2],
+            [10, 7, 6],
+            [7, 1, 8],
+            [3, 9, 4],
+            [3, 4, 2],
+            [3, 2, 6],
+            [3, 6, 8],
+            [3, 8, 9],
+            [4, 9, 5],
+            [2, 4, 11],
+            [6, 2, 10],
+            [8, 6, 7],
+            [9, 8, 1],
+        ],
         dtype=torch.int64,
     )
     return verts / verts.norm(dim=1, keepdim=True), faces
@@ -55,9 +85,7 @@ def _subdivide(verts: Tensor, faces: Tensor) -> tuple[Tensor, Tensor]:
 
     a, b, c = faces.unbind(1)
     ab, bc, ca = midpoint_index(a, b), midpoint_index(b, c), midpoint_index(c, a)
-    new_faces = torch.cat(
-        [torch.stack(f, dim=1) for f in ((a, ab, ca), (ab, b, bc), (ca, bc, c), (ab, bc, ca))]
-    )
+    new_faces = torch.cat([torch.stack(f, dim=1) for f in ((a, ab, ca), (ab, b, bc), (ca, bc, c), (ab, bc, ca))])
     return new_verts, new_faces
 
 
@@ -70,7 +98,9 @@ def _ico_sphere_cpu(level: int) -> tuple[Tensor, Tensor]:
     return verts, faces
 
 
-def ico_sphere(level: int, dtype: torch.dtype = torch.float32, device: torch.device | str | None = None) -> tuple[Tensor, Tensor]:
+def ico_sphere(
+    level: int, dtype: torch.dtype = torch.float32, device: torch.device | str | None = None
+) -> tuple[Tensor, Tensor]:
     """Unit ico-sphere of subdivision ``level``.
 
     Returns:

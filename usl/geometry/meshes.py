@@ -6,6 +6,7 @@ swaps the vertex tensor. When every mesh has the same faces (the model's identic
 ico-sphere per object), the topology keeps one face template and builds packed faces and
 edges by broadcasting, with no Python loop over meshes.
 """
+
 from __future__ import annotations
 
 from collections.abc import Sequence
@@ -93,7 +94,9 @@ class Meshes:
     def from_shared_topology(cls, verts: Tensor, faces: Tensor) -> Meshes:
         """B meshes with one face template: verts (B, V, 3), faces (F, 3). No per-mesh loop."""
         if verts.dim() != 3 or verts.shape[-1] != 3 or not verts.is_floating_point():
-            raise ValueError(f"Meshes.from_shared_topology: verts must be float (B, V, 3), got {verts.dtype} {tuple(verts.shape)}")
+            raise ValueError(
+                f"Meshes.from_shared_topology: verts must be float (B, V, 3), got {verts.dtype} {tuple(verts.shape)}"
+            )
         _check_faces(faces, verts.shape[1], "template")
         num_meshes, num_verts = verts.shape[:2]
         return cls._from_parts(verts.reshape(-1, 3), _Topology.shared(faces.long(), num_meshes, num_verts))
@@ -211,11 +214,15 @@ class Meshes:
 
 def _check_faces(faces: Tensor, num_verts: int, which: object) -> None:
     if faces.dim() != 2 or faces.shape[1] != 3 or faces.is_floating_point():
-        raise ValueError(f"Meshes: faces of mesh {which} must be an integer (F, 3) tensor, got {faces.dtype} {tuple(faces.shape)}")
+        raise ValueError(
+            f"Meshes: faces of mesh {which} must be an integer (F, 3) tensor, got {faces.dtype} {tuple(faces.shape)}"
+        )
     if faces.numel() and (int(faces.min()) < 0 or int(faces.max()) >= num_verts):
         raise ValueError(f"Meshes: faces of mesh {which} index outside its {num_verts} vertices")
 
 
 def _check_verts(verts: Tensor, which: object) -> None:
     if verts.dim() != 2 or verts.shape[1] != 3 or not verts.is_floating_point():
-        raise ValueError(f"Meshes: verts of mesh {which} must be a float (V, 3) tensor, got {verts.dtype} {tuple(verts.shape)}")
+        raise ValueError(
+            f"Meshes: verts of mesh {which} must be a float (V, 3) tensor, got {verts.dtype} {tuple(verts.shape)}"
+        )

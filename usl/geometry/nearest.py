@@ -7,6 +7,7 @@ The returned squared distances are then recomputed from the gathered neighbours,
 they are exactly differentiable w.r.t. both point sets (the gradient of a minimum is
 the gradient of its minimiser), at O(N) extra memory.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -45,7 +46,9 @@ def nearest_neighbors(
             valid candidate the values are meaningless: callers must mask those out.
     """
     if x.dim() != 3 or y.dim() != 3 or x.shape[0] != y.shape[0] or x.shape[2] != y.shape[2]:
-        raise ValueError(f"nearest_neighbors: expected (B, N, D) and (B, M, D), got {tuple(x.shape)} and {tuple(y.shape)}")
+        raise ValueError(
+            f"nearest_neighbors: expected (B, N, D) and (B, M, D), got {tuple(x.shape)} and {tuple(y.shape)}"
+        )
     batch, num_x, _ = x.shape
     num_y = y.shape[1]
     if num_y == 0 or num_x == 0:
@@ -65,7 +68,7 @@ def nearest_neighbors(
         centre = y.detach().mean(dim=1, keepdim=True)
         xd, yd = x.detach() - centre, y.detach() - centre
         for start in range(0, num_x, chunk):
-            d = torch.cdist(xd[:, start:start + chunk], yd, compute_mode="use_mm_for_euclid_dist")
+            d = torch.cdist(xd[:, start : start + chunk], yd, compute_mode="use_mm_for_euclid_dist")
             if y_valid is not None:
                 d = d.masked_fill(~y_valid.unsqueeze(1), float("inf"))
             idx_chunks.append(d.argmin(dim=2))

@@ -1,4 +1,5 @@
 """Area-weighted point sampling on mesh surfaces (for the 2D Chamfer loss and 3D metrics)."""
+
 from __future__ import annotations
 
 import torch

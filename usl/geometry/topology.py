@@ -1,4 +1,5 @@
 """Mesh connectivity helpers: unique edges, the faces on each edge, the uniform graph Laplacian and its smoothest eigenvectors."""
+
 from __future__ import annotations
 
 import torch
@@ -43,9 +44,7 @@ def uniform_laplacian(num_verts: int, edges: Tensor, dtype: torch.dtype = torch.
     device = edges.device
     rows = torch.cat([edges[:, 0], edges[:, 1]])
     cols = torch.cat([edges[:, 1], edges[:, 0]])
-    degree = torch.zeros(num_verts, dtype=dtype, device=device).index_add_(
-        0, rows, torch.ones_like(rows, dtype=dtype)
-    )
+    degree = torch.zeros(num_verts, dtype=dtype, device=device).index_add_(0, rows, torch.ones_like(rows, dtype=dtype))
     connected = torch.nonzero(degree > 0).squeeze(1)
     indices = torch.cat([torch.stack([rows, cols]), torch.stack([connected, connected])], dim=1)
     values = torch.cat([-1.0 / degree[rows], torch.ones_like(connected, dtype=dtype)])

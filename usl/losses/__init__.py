@@ -1,5 +1,6 @@
 """The paper's training losses: 2D silhouette losses (Sec. 3.4), shape regularizers, weighting,
 and Mesh R-CNN's 3D mesh losses for the 3D-supervised baseline."""
+
 from usl.losses.mesh3d import ChamferNormal, chamfer_normal_loss
 from usl.losses.regularizers import (
     depth_laplacian_loss,

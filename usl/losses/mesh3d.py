@@ -7,6 +7,7 @@ normals of each point and of its nearest neighbour, averaged, both ways, summed 
 makes it blind to face winding, which the frustum map may flip). Its third term, the edge length,
 is ``usl.losses.mesh_edge_loss`` on the predicted mesh.
 """
+
 from __future__ import annotations
 
 from typing import NamedTuple
@@ -24,8 +25,12 @@ class ChamferNormal(NamedTuple):
 
 
 def chamfer_normal_loss(
-    pred_points: Tensor, pred_normals: Tensor, true_points: Tensor, true_normals: Tensor,
-    max_elements: int = DEFAULT_MAX_ELEMENTS, backend: str = "auto",
+    pred_points: Tensor,
+    pred_normals: Tensor,
+    true_points: Tensor,
+    true_normals: Tensor,
+    max_elements: int = DEFAULT_MAX_ELEMENTS,
+    backend: str = "auto",
 ) -> ChamferNormal:
     """Per-pair Chamfer-L2 and normal terms between (B, N, 3) and (B, M, 3) point sets with unit
     normals, differentiable w.r.t. the predicted points and normals (and the true ones).

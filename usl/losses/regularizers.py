@@ -1,4 +1,5 @@
 """Shape regularizers of the paper's appendix (edge length, L2 on offsets, Laplacian), and normal consistency."""
+
 from __future__ import annotations
 
 import torch

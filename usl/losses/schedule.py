@@ -6,6 +6,7 @@ is what is wanted; once the silhouettes overlap it drowns the pixel-wise shape s
 on l_dist's factor keeps the paper's loss (``l_2D = f(t) l_dist + 1[IoU > 0.5] l_xent``) and only
 shifts the balance between its two terms over time.
 """
+
 from __future__ import annotations
 
 from bisect import bisect_right
@@ -25,7 +26,9 @@ class PiecewiseLinear:
 
     def __post_init__(self) -> None:
         if len(self.iters) != len(self.values):
-            raise ValueError(f"schedule: {len(self.iters)} iters but {len(self.values)} values; give one value per knot")
+            raise ValueError(
+                f"schedule: {len(self.iters)} iters but {len(self.values)} values; give one value per knot"
+            )
         if any(b <= a for a, b in zip(self.iters, self.iters[1:])):
             raise ValueError(f"schedule: iters must increase strictly, got {list(self.iters)}")
         if any(v < 0 for v in self.values):

@@ -2,6 +2,7 @@
 
 All functions work on a batch of P (object, view) pairs at once.
 """
+
 from __future__ import annotations
 
 from typing import NamedTuple
@@ -39,7 +40,7 @@ def sample_mask_points(
         jitter: place each point uniformly inside its pixel instead of at the pixel centre.
         generator: torch.Generator on the masks' device, for reproducible draws.
     Returns:
-        points: (P, num_points, 2) (u, v) in the image pixel frame of DESIGN.md §2;
+        points: (P, num_points, 2) (u, v) in the image pixel frame of docs/design.md §2;
             the first ``lengths[p]`` rows are samples, the rest zero padding.
         lengths: (P,) int64 number of samples per mask.
     """

@@ -13,6 +13,7 @@ The paper's recipes (``LossWeights.recipe(name)``):
 * Hypersim:     ``L = L_2D + 1.0 L_3D + 0.05 ½‖dV‖²`` (dV before the tanh);
 * ScanNet:      ``L = L_2D + 1.0 L_3D + 0.05 ½‖dV‖² + 0.1 L_laplac``.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -81,7 +82,11 @@ def combine_losses(
             parts[f"det/{name}"] = weights.mu_2d * value
     parts["l3d"] = weights.mu_3d * l3d
     regularizers = {
-        "edge": edge, "offset_l2": offset_l2, "laplacian": laplacian, "normal": normal, "depth_laplacian": depth_laplacian,
+        "edge": edge,
+        "offset_l2": offset_l2,
+        "laplacian": laplacian,
+        "normal": normal,
+        "depth_laplacian": depth_laplacian,
     }
     for name, term in regularizers.items():
         weight = weights.mu_reg * getattr(weights, name)

@@ -1,4 +1,5 @@
 """Evaluation metrics of the paper (Sec. 4): 3D Chamfer / F1, mask IoU, box gIoU, nearest-depth L1."""
+
 from usl.metrics.boxes import box_giou, masks_to_boxes
 from usl.metrics.depth import depth_l1, nearest_depth
 from usl.metrics.masks import mask_iou

@@ -1,4 +1,5 @@
 """Box gIoU (paper Sec. 4: Box_2D gIoU of the boxes around predicted and true silhouettes)."""
+
 from __future__ import annotations
 
 import torch
@@ -23,7 +24,7 @@ def box_giou(a: Tensor, b: Tensor, eps: float = 1e-9) -> Tensor:
 
 
 def masks_to_boxes(masks: Tensor) -> Tensor:
-    """Tight xyxy boxes (..., 4) around binary masks (..., H, W) in the pixel frame of DESIGN.md §2.
+    """Tight xyxy boxes (..., 4) around binary masks (..., H, W) in the pixel frame of docs/design.md §2.
 
     Pixel (r, c) covers [c, c+1] x [r, r+1], so a single pixel at (r, c) gives
     [c, r, c + 1, r + 1]. Empty masks give NaN boxes.

@@ -1,4 +1,5 @@
 """Nearest-depth L1 (paper Sec. 4: |true - predicted| nearest depth of each object)."""
+
 from __future__ import annotations
 
 import torch

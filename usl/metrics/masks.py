@@ -1,4 +1,5 @@
 """Mask IoU (paper Sec. 4: Mask_2D IoU of the rendered prediction vs. the true mask)."""
+
 from __future__ import annotations
 
 import torch

@@ -1,4 +1,5 @@
 """3D shape metrics of Mesh R-CNN (Chamfer-L2, precision / recall / F1 at distance thresholds)."""
+
 from __future__ import annotations
 
 from collections.abc import Sequence

@@ -8,6 +8,7 @@ weighted by ``loss.mesh3d`` (its ShapeNet weights by default). Normalised like t
 over each image's objects, then over the batch (images without objects count 0), so DDP's
 averaging of per-GPU losses gives exactly the whole batch's gradient.
 """
+
 from __future__ import annotations
 
 import torch
@@ -21,7 +22,11 @@ Tensor = torch.Tensor
 
 
 def mesh_supervision_loss(
-    stage_verts_cam: list[Tensor], faces: Tensor, samples: list[MultiViewSample], counts: list[int], cfg: Mesh3DLossConfig
+    stage_verts_cam: list[Tensor],
+    faces: Tensor,
+    samples: list[MultiViewSample],
+    counts: list[int],
+    cfg: Mesh3DLossConfig,
 ) -> tuple[Tensor, dict[str, Tensor]]:
     """``(L_3D, stats)`` for a batch. ``stage_verts_cam[s]`` (N, V, 3) holds stage s's meshes of all
     objects in their input camera's frame, sample by sample (``counts[i]`` objects of sample i, in
@@ -35,7 +40,9 @@ def mesh_supervision_loss(
         if counts[index] == 0:
             continue
         if sample.true_meshes is None or len(sample.true_meshes) != counts[index]:
-            raise ValueError("mesh_supervision_loss: samples need one true mesh per object (MultiViewDataset(with_true_meshes=True))")
+            raise ValueError(
+                "mesh_supervision_loss: samples need one true mesh per object (MultiViewDataset(with_true_meshes=True))"
+            )
         generator = torch.Generator(device=zero.device).manual_seed(sample.seed)
         true = Meshes([m.verts.float() for m in sample.true_meshes], [m.faces for m in sample.true_meshes])
         with torch.no_grad():

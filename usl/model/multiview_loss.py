@@ -15,6 +15,7 @@ mean over the batch's images. Two choices the paper leaves open:
 All geometry here runs in float32 with autocast off: squared pixel distances and soft
 silhouettes with sigma ~ 1e-4 are not safe in half precision.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -106,22 +107,39 @@ def multiview_silhouette_loss(
     dist_factor = cfg.weights.dist * cfg.dist_scale * cfg.dist_schedule(iteration)
     if dist_factor:
         dist = silhouette_chamfer_loss(
-            torch.cat(pairs.points), K, torch.cat(pairs.sizes), torch.cat(pairs.true_points), torch.cat(pairs.true_lengths)
+            torch.cat(pairs.points),
+            K,
+            torch.cat(pairs.sizes),
+            torch.cat(pairs.true_points),
+            torch.cat(pairs.true_lengths),
         )
     else:  # "w/o l_dist": not computed, so it contributes exactly no gradient (and costs nothing)
         dist = verts.new_zeros(len(verts))
     num_pairs, num_verts = verts.shape[:2]
-    faces_packed = (faces[None] + num_verts * torch.arange(num_pairs, device=faces.device)[:, None, None]).reshape(-1, 3)
+    faces_packed = (faces[None] + num_verts * torch.arange(num_pairs, device=faces.device)[:, None, None]).reshape(
+        -1, 3
+    )
     face_window = torch.arange(num_pairs, device=faces.device).repeat_interleave(faces.shape[0])
     render = cfg.render
     rendered = render_dynamic(
-        verts.reshape(-1, 3), faces_packed, face_window, K, pairs.masks, render.resolution, render.settings(),
-        render.padding, ignore_masks=pairs.occluders if cfg.ignore_occluders else None,
+        verts.reshape(-1, 3),
+        faces_packed,
+        face_window,
+        K,
+        pairs.masks,
+        render.resolution,
+        render.settings(),
+        render.padding,
+        ignore_masks=pairs.occluders if cfg.ignore_occluders else None,
     )
     xent = silhouette_bce_loss(rendered.soft, rendered.target, rendered.valid, cfg.iou_threshold)
     is_input = torch.cat(pairs.is_input)
     others = ~is_input
-    other_views = {"iou_pass_views": xent.gate[others].float().mean(), "iou_views": xent.iou[others].mean()} if bool(others.any()) else {}
+    other_views = (
+        {"iou_pass_views": xent.gate[others].float().mean(), "iou_views": xent.iou[others].mean()}
+        if bool(others.any())
+        else {}
+    )
     if cfg.xent_gate == "all":  # l_xent on every pair
         xent = xent._replace(gate=torch.ones_like(xent.gate))
     elif not cfg.gate_input_view:
@@ -200,7 +218,9 @@ def shape_regularizers(
         if need.get("depth_laplacian"):
             result["depth_laplacian"] = result["depth_laplacian"] + depth_laplacian_loss(meshes) / batch
         if need.get("normal"):
-            result["normal"] = result["normal"] + normal_consistency(verts_cube[rows].float(), faces, pairs).mean() / batch
+            result["normal"] = (
+                result["normal"] + normal_consistency(verts_cube[rows].float(), faces, pairs).mean() / batch
+            )
         if need.get("offset_l2"):
             result["offset_l2"] = result["offset_l2"] + sum(offset_l2_loss(o[rows]) for o in offsets) / batch
     return result

@@ -1,5 +1,6 @@
 """What a model (or a baseline) predicts for one input image: the contract between the model,
 the evaluator, the report and ``usl-predict``."""
+
 from __future__ import annotations
 
 from dataclasses import dataclass, fields

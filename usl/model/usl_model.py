@@ -8,6 +8,7 @@ boxes of the input view's objects (the frustum of each object is its true 2D box
 ``mode="gt_boxes"`` uses the true boxes and labels (how the paper measures shape and layout),
 ``mode="detections"`` the detector's own boxes, labels and scores.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -49,7 +50,10 @@ class ObjectOutputs:
 
     def stage_verts_cam(self) -> list[Tensor]:
         """Every stage's meshes (the global stage's first, if on) in the input camera's frame (the last is ``verts_cam``)."""
-        cast = [cube_to_frustum(v.float(), self.boxes, self.K, self.layout.z, self.layout.rho) for v in self.shape.stage_verts[:-1]]
+        cast = [
+            cube_to_frustum(v.float(), self.boxes, self.K, self.layout.z, self.layout.rho)
+            for v in self.shape.stage_verts[:-1]
+        ]
         return cast + [self.verts_cam]
 
 
@@ -79,7 +83,9 @@ class USLModel(nn.Module):
         in_channels = shapes[cfg.layout.in_features[0]].channels
         self.layout_head = LayoutHead(in_channels, len(cfg.categories), cfg.layout, cfg.layout_range)
         roi_dim = in_channels * cfg.layout.pooler_resolution**2  # the global shape stage reads the layout head's RoIs
-        self.shape_head = ShapeHead({**shapes, IMAGE_MAP: ShapeSpec(channels=3, stride=1)}, cfg.shape, len(cfg.categories), roi_dim)
+        self.shape_head = ShapeHead(
+            {**shapes, IMAGE_MAP: ShapeSpec(channels=3, stride=1)}, cfg.shape, len(cfg.categories), roi_dim
+        )
         if cfg.init_weights and load_init_weights:
             print_report(init_detector(self.detector, cfg.init_weights, cfg.init_format))
         self.register_buffer("pixel_mean", torch.tensor(IMAGENET_MEAN).view(3, 1, 1), persistent=False)
@@ -127,7 +133,9 @@ class USLModel(nn.Module):
         return ObjectOutputs(layout, shape, verts_cam, counts, flat_boxes, flat_K)
 
     # ------------------------------------------------------------------ training
-    def forward(self, samples: list[MultiViewSample], iteration: int = 0, diagnostics: bool = False) -> dict[str, Tensor]:
+    def forward(
+        self, samples: list[MultiViewSample], iteration: int = 0, diagnostics: bool = False
+    ) -> dict[str, Tensor]:
         """Weighted losses (``det/*``, ``l3d`` and the weighted regularizers of ``REGULARIZERS``), their sum
         ``loss``, and detached statistics under ``stat/*``.
 
@@ -176,7 +184,9 @@ class USLModel(nn.Module):
         self, outputs: ObjectOutputs, samples: list[MultiViewSample], iteration: int, diagnostics: bool
     ) -> tuple[Tensor, dict[str, Tensor]]:
         """The paper's multi-view L_3D and its statistics (with gradient diagnostics when asked)."""
-        silhouette = multiview_silhouette_loss(outputs.verts_cam, self.faces, samples, outputs.counts, self.loss_cfg, iteration)
+        silhouette = multiview_silhouette_loss(
+            outputs.verts_cam, self.faces, samples, outputs.counts, self.loss_cfg, iteration
+        )
         stats = dict(silhouette.stats)
         if diagnostics:
             stats.update(_gradient_norms(outputs.shape.verts, {"dist": silhouette.dist, "xent": silhouette.xent}))
@@ -223,13 +233,24 @@ class USLModel(nn.Module):
 
 
 def _split_predictions(
-    outputs: ObjectOutputs, boxes: list[Tensor], labels: list[Tensor], scores: list[Tensor], ids: list[Tensor], faces: Tensor
+    outputs: ObjectOutputs,
+    boxes: list[Tensor],
+    labels: list[Tensor],
+    scores: list[Tensor],
+    ids: list[Tensor],
+    faces: Tensor,
 ) -> list[ObjectPredictions]:
     z, rho, verts = (t.split(outputs.counts) for t in (outputs.layout.z, outputs.layout.rho, outputs.verts_cam))
     return [
         ObjectPredictions(
-            boxes=b.float(), labels=l.long(), scores=s.float(), z=zi.float(), rho=ri.float(),
-            verts=v.float(), faces=faces, instance_ids=i.long(),
+            boxes=b.float(),
+            labels=l.long(),
+            scores=s.float(),
+            z=zi.float(),
+            rho=ri.float(),
+            verts=v.float(),
+            faces=faces,
+            instance_ids=i.long(),
         )
         for b, l, s, zi, ri, v, i in zip(boxes, labels, scores, z, rho, verts, ids)
     ]

@@ -1,9 +1,10 @@
-"""Sharded Parquet multi-view records (DESIGN.md §3): schema, encoding, writing, reading (v1 and v2),
+"""Sharded Parquet multi-view records (docs/design.md §3): schema, encoding, writing, reading (v1 and v2),
 validation, migration and COCO export.
 
 The reader (a torch ``IterableDataset``) is imported on first use, so tools that only write or
 check records, and every ``--help``, start without loading torch.
 """
+
 from .encode import (
     SceneRecord,
     Skip,

@@ -1,4 +1,5 @@
 """Atomic file writes: a temp file beside the target, fsync, rename. Readers never see half a file."""
+
 from __future__ import annotations
 
 import json

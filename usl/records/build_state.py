@@ -8,6 +8,7 @@ renamed into place, so marker present + checksum match means the shard is comple
 and ``claims/`` say who builds what (``usl.records.claims``); ``spill/`` holds frame rows of long
 scenes on their way from a worker to a shard.
 """
+
 from __future__ import annotations
 
 import json
@@ -56,8 +57,14 @@ def identity_difference(existing: dict[str, Any], wanted: dict[str, Any]) -> str
 
 
 class BuildState:
-    def __init__(self, root: Path, dataset: str, fingerprint: dict[str, Any],
-                 shards: Iterable[tuple[str, int]] = (), about: dict[str, Any] | None = None):
+    def __init__(
+        self,
+        root: Path,
+        dataset: str,
+        fingerprint: dict[str, Any],
+        shards: Iterable[tuple[str, int]] = (),
+        about: dict[str, Any] | None = None,
+    ):
         self.root = Path(root)
         self.dir = self.root / STATE_DIR
         self.dataset = dataset
@@ -81,8 +88,9 @@ class BuildState:
         created = False
         if not build_file.exists():
             if self.root.exists() and any(p.name != STATE_DIR for p in self.root.iterdir()):
-                raise UslError(f"{self.root}: output folder is not empty and was not made by this build; "
-                               "choose a new --out")
+                raise UslError(
+                    f"{self.root}: output folder is not empty and was not made by this build; choose a new --out"
+                )
             try:
                 self.dir.mkdir(parents=True, exist_ok=True)
                 tmp = temp_path(build_file, hidden=True)
@@ -95,7 +103,9 @@ class BuildState:
                 finally:
                     tmp.unlink()
             except OSError as exc:  # read-only folder or disk, no space, ...
-                raise UslError(f"{exc.filename or self.root}: cannot write the output folder ({exc.strerror})") from None
+                raise UslError(
+                    f"{exc.filename or self.root}: cannot write the output folder ({exc.strerror})"
+                ) from None
         difference = identity_difference(read_build_file(self.root), self.identity)
         if difference:
             raise UslError(f"{self.root}: output folder holds {difference}; choose a new --out or delete it")

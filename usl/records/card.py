@@ -4,6 +4,7 @@ Its YAML front matter declares the configs (``frames``, the default, and ``objec
 data-files glob per split, so ``datasets.load_dataset(root, split="train")`` loads the frames
 table; the body says what the dataset is, how to load it, and documents every field.
 """
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -32,7 +33,9 @@ def card_configs(manifest: dict[str, Any]) -> list[dict[str, Any]]:
             if any(shard[table] for shard in entry["shards"])
         ]
         if files:
-            configs.append({"config_name": table, **({"default": True} if table == "frames" else {}), "data_files": files})
+            configs.append(
+                {"config_name": table, **({"default": True} if table == "frames" else {}), "data_files": files}
+            )
     return configs
 
 
@@ -60,10 +63,17 @@ def _field_lines(fields: list[dict[str, Any]], prefix: str = "") -> list[str]:
 
 def dataset_card(manifest: dict[str, Any]) -> str:
     spec = load_schema_spec(SCHEMA_VERSION)
-    front = {"pretty_name": manifest["name"], "tags": ["usl", "multi-view", "instance-segmentation", "3d"],
-             "configs": card_configs(manifest)}
+    front = {
+        "pretty_name": manifest["name"],
+        "tags": ["usl", "multi-view", "instance-segmentation", "3d"],
+        "configs": card_configs(manifest),
+    }
     lines = [
-        "---", yaml.safe_dump(front, sort_keys=False).rstrip(), "---", MARKER, "",
+        "---",
+        yaml.safe_dump(front, sort_keys=False).rstrip(),
+        "---",
+        MARKER,
+        "",
         f"# {manifest['name']}",
         "",
         f"Multi-view records made with usl (record schema version {SCHEMA_VERSION}): "
@@ -72,7 +82,10 @@ def dataset_card(manifest: dict[str, Any]) -> str:
         "",
         "| split | scenes | views | objects (3D) |",
         "|---|---|---|---|",
-        *(f"| {split} | {e['num_scenes']} | {e['num_frames']} | {e['num_objects']} |" for split, e in manifest["splits"].items()),
+        *(
+            f"| {split} | {e['num_scenes']} | {e['num_frames']} | {e['num_objects']} |"
+            for split, e in manifest["splits"].items()
+        ),
         "",
         "Categories: " + ", ".join(f"{c['id']} {c['name']}" for c in manifest["categories"]) + ".",
         "",
@@ -95,12 +108,23 @@ def dataset_card(manifest: dict[str, Any]) -> str:
         if not any(c["config_name"] == table for c in front["configs"]):
             continue
         table_spec = spec["tables"][table]
-        lines += [f"## `{table}`: {table_spec['doc']}", "", "| field | type | meaning |", "|---|---|---|",
-                  *_field_lines(table_spec["fields"]), ""]
+        lines += [
+            f"## `{table}`: {table_spec['doc']}",
+            "",
+            "| field | type | meaning |",
+            "|---|---|---|",
+            *_field_lines(table_spec["fields"]),
+            "",
+        ]
     creator = manifest.get("creator", {})
     if creator:
-        lines += ["## Provenance", "", f"Made by `{creator.get('command', '?')}` (usl {creator.get('usl_version', '?')}); "
-                  "arguments and skipped items are in `manifest.json`.", ""]
+        lines += [
+            "## Provenance",
+            "",
+            f"Made by `{creator.get('command', '?')}` (usl {creator.get('usl_version', '?')}); "
+            "arguments and skipped items are in `manifest.json`.",
+            "",
+        ]
     return "\n".join(lines)
 
 

@@ -14,6 +14,7 @@ Claims make the work disjoint; correctness does not rest on them alone: a shard 
 the build's arguments and appears by atomic rename, so even one built twice (a takeover racing a
 late heartbeat) is the same file.
 """
+
 from __future__ import annotations
 
 import json
@@ -91,8 +92,13 @@ def is_stale(raw: bytes, mtime: float, stale_after: float) -> bool:
 class Owner:
     """This process's presence in a build folder (a context manager): heartbeat, claims, reaping."""
 
-    def __init__(self, state_dir: Path, stale_after: float = STALE_AFTER_SECONDS,
-                 heartbeat: float = HEARTBEAT_SECONDS, token_dirs: tuple[Path, ...] = ()):
+    def __init__(
+        self,
+        state_dir: Path,
+        stale_after: float = STALE_AFTER_SECONDS,
+        heartbeat: float = HEARTBEAT_SECONDS,
+        token_dirs: tuple[Path, ...] = (),
+    ):
         self.dir = Path(state_dir)
         self.token = process_token()
         self.stale_after, self.heartbeat = stale_after, heartbeat
@@ -110,8 +116,13 @@ class Owner:
         return self.dir / f"scratch-{self.token}"
 
     def info(self) -> dict[str, Any]:
-        return {"token": self.token, "host": host_identity(), "hostname": socket.gethostname(),
-                "pid": os.getpid(), "started": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
+        return {
+            "token": self.token,
+            "host": host_identity(),
+            "hostname": socket.gethostname(),
+            "pid": os.getpid(),
+            "started": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+        }
 
     def __enter__(self) -> "Owner":
         try:

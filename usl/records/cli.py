@@ -9,6 +9,7 @@ made on separate machines into one.
     usl-records export-coco data/scene_shapes --split val --out val_coco.json --images-dir val_images
     usl-records gather part0 part1 part2 --out data/hypersim  # --num-shards/--shard-index builds
 """
+
 from __future__ import annotations
 
 import json
@@ -27,8 +28,9 @@ def parser():
     def command(name: str, help_text: str, **kwargs):
         return sub.add_parser(name, help=help_text, description=__doc__, formatter_class=p.formatter_class, **kwargs)
 
-    check = command("validate", "check a dataset folder against the record spec",
-                    parents=[common_options(quiet="no progress bar")])
+    check = command(
+        "validate", "check a dataset folder against the record spec", parents=[common_options(quiet="no progress bar")]
+    )
     check.add_argument("root", type=Path, help="dataset folder (with manifest.json)")
     check.add_argument("--split", action="append", help="only these splits (repeatable; default: all)")
     check.add_argument("--no-images", action="store_true", help="skip decoding every image (faster)")
@@ -45,8 +47,11 @@ def parser():
     coco.add_argument("root", type=Path, help="dataset folder (with manifest.json)")
     coco.add_argument("--split", required=True, help="split to export, e.g. train")
     coco.add_argument("--out", type=Path, required=True, help="JSON file to write")
-    coco.add_argument("--images-dir", type=Path,
-                      help="also write the images here, as the JSON's file_name values name them (default: JSON only)")
+    coco.add_argument(
+        "--images-dir",
+        type=Path,
+        help="also write the images here, as the JSON's file_name values name them (default: JSON only)",
+    )
     merge = command("gather", "merge folders built apart (--num-shards/--shard-index) into one dataset")
     merge.add_argument("parts", nargs="+", type=Path, metavar="PART", help="build folders of one build")
     merge.add_argument("--out", type=Path, required=True, help="dataset folder to create (or complete)")
@@ -64,15 +69,20 @@ def main(argv: list[str] | None = None) -> int:
             summary = gather(args.parts, args.out, progress=True)
             print(f"{args.out}: copied {summary.copied} shard(s), kept {summary.kept}")
             if summary.missing:
-                print(f"usl-records: error: no part holds shard(s) {', '.join(summary.missing)}; build them "
-                      "(same command, their --shard-index) and gather again", file=sys.stderr)
+                print(
+                    f"usl-records: error: no part holds shard(s) {', '.join(summary.missing)}; build them "
+                    "(same command, their --shard-index) and gather again",
+                    file=sys.stderr,
+                )
                 return 1
             print(f"{args.out / 'manifest.json'} written")
             return 0
         if args.command == "validate":
             from .validate import validate_dataset
 
-            problems = validate_dataset(args.root, args.split, decode_images=not args.no_images, progress=not args.quiet)
+            problems = validate_dataset(
+                args.root, args.split, decode_images=not args.no_images, progress=not args.quiet
+            )
             for problem in problems:
                 print(problem)
             print(f"{args.root}: {'valid' if not problems else f'{len(problems)} problem(s)'}")
@@ -91,7 +101,9 @@ def main(argv: list[str] | None = None) -> int:
 
         counts = dataset_counts(args.root)
         print(json.dumps(counts, indent=1) if args.json else format_counts(counts))
-        sheet = contact_sheet(args.root, args.sheet or args.root / "contact_sheet.png", args.split, args.scenes, args.views)
+        sheet = contact_sheet(
+            args.root, args.sheet or args.root / "contact_sheet.png", args.split, args.scenes, args.views
+        )
         print(f"contact sheet: {sheet}")
         return 0
     except UslError as exc:

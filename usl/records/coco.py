@@ -9,6 +9,7 @@ with ``images_dir`` the encoded images are written there, byte for byte, so
 detectron2's ``INPUT.MASK_FORMAT=bitmask``). The JSON is written last and atomically: when it
 exists, every image it names has been written.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -38,9 +39,13 @@ def coco_annotation(
 ) -> dict[str, Any]:
     """A COCO ground-truth annotation (not crowd) from a mask's RLE, pixel count and xyxy box."""
     return {
-        "id": int(ann_id), "image_id": int(image_id), "category_id": int(category_id),
+        "id": int(ann_id),
+        "image_id": int(image_id),
+        "category_id": int(category_id),
         "segmentation": {"size": [int(v) for v in rle["size"]], "counts": rle["counts"]},
-        "area": float(area), "bbox": xyxy_to_xywh(box_xyxy), "iscrowd": 0,
+        "area": float(area),
+        "bbox": xyxy_to_xywh(box_xyxy),
+        "iscrowd": 0,
     }
 
 
@@ -78,18 +83,34 @@ def export_coco(
     for scene_id in tqdm(dataset.scene_ids, desc=f"export {split}", unit="scene", disable=not progress):
         total = dataset.num_views(scene_id)
         for start in range(0, total, VIEWS_PER_READ):
-            for row in dataset.read_scene(scene_id, views=range(start, min(total, start + VIEWS_PER_READ)), columns=COLUMNS):
+            for row in dataset.read_scene(
+                scene_id, views=range(start, min(total, start + VIEWS_PER_READ)), columns=COLUMNS
+            ):
                 data = image_bytes(row["image"])
                 try:
                     file_name = image_file_name(row["scene_id"], row["view_id"], data)
                 except UslError as exc:
                     raise UslError(f"{dataset.root}: scene {scene_id!r} view {row['view_id']}: {exc}") from None
                 image_id = len(images) + 1
-                images.append({"id": image_id, "file_name": file_name, "height": int(row["height"]),
-                               "width": int(row["width"]), "scene_id": row["scene_id"], "view_id": int(row["view_id"])})
+                images.append(
+                    {
+                        "id": image_id,
+                        "file_name": file_name,
+                        "height": int(row["height"]),
+                        "width": int(row["width"]),
+                        "scene_id": row["scene_id"],
+                        "view_id": int(row["view_id"]),
+                    }
+                )
                 for inst in row["instances"] or []:
-                    annotation = coco_annotation(len(annotations) + 1, image_id, inst["category_id"], inst["mask"],
-                                                 inst["area"], inst["box_xyxy"])
+                    annotation = coco_annotation(
+                        len(annotations) + 1,
+                        image_id,
+                        inst["category_id"],
+                        inst["mask"],
+                        inst["area"],
+                        inst["box_xyxy"],
+                    )
                     annotations.append({**annotation, "instance_id": int(inst["instance_id"])})
                 if images_dir is not None:
                     path = images_dir / file_name

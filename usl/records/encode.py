@@ -1,8 +1,9 @@
 """Encoding and decoding of record fields: images, depth, masks (COCO RLE) and whole rows.
 
 Every pipeline goes through these helpers so that boxes, areas and nearest depths are derived from
-masks the same way everywhere (DESIGN.md §2-3).
+masks the same way everywhere (docs/design.md §2-3).
 """
+
 from __future__ import annotations
 
 from contextlib import contextmanager
@@ -118,7 +119,7 @@ def decoding(row: dict[str, Any], source: str = "") -> Iterator[None]:
 
 
 def mask_bbox(mask: np.ndarray) -> list[float]:
-    """Tight box ``[x0, y0, x1, y1]`` around a non-empty mask in the pixel frame of DESIGN.md §2.
+    """Tight box ``[x0, y0, x1, y1]`` around a non-empty mask in the pixel frame of docs/design.md §2.
 
     Pixel (row i, col j) covers [j, j+1] x [i, i+1], so the box spans whole pixels.
     """

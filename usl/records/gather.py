@@ -5,6 +5,7 @@ i --out part_i``), the parts are copied together, and ``gather`` checks that the
 build (same dataset, arguments and shard plan), copies every finished shard into the output with
 its checksum verified on the way, and writes the manifest once every planned shard is there.
 """
+
 from __future__ import annotations
 
 import hashlib
@@ -66,8 +67,13 @@ def gather(parts: list[Path], out: Path, progress: bool = False) -> GatherSummar
     if "spec" not in first or "creator" not in first:
         raise UslError(f"{parts[0]}: made by an older usl that did not record the dataset spec; rebuild it")
     creator = {**first["creator"], "gathered_from": [str(p) for p in parts]}
-    state = BuildState(out, first["dataset"], first["fingerprint"], [tuple(s) for s in first["shards"]],
-                       about={"spec": first["spec"], "creator": first["creator"]})
+    state = BuildState(
+        out,
+        first["dataset"],
+        first["fingerprint"],
+        [tuple(s) for s in first["shards"]],
+        about={"spec": first["spec"], "creator": first["creator"]},
+    )
     state.open()
     sources = [BuildState(part, first["dataset"], first["fingerprint"]) for part in parts]
     summary = GatherSummary()

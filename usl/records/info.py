@@ -1,4 +1,5 @@
 """Summaries of a dataset folder: counts per split and category, and a contact sheet to look at."""
+
 from __future__ import annotations
 
 from collections import Counter
@@ -66,12 +67,20 @@ def overlay_instances(image: np.ndarray, instances: list[dict[str, Any]], names:
         x0, y0, x1, y1 = (int(round(v)) for v in inst["box_xyxy"])
         cv2.rectangle(out, (x0, y0), (x1 - 1, y1 - 1), tuple(int(c) for c in colour), 1)
         label = f"{names.get(inst['category_id'], inst['category_id'])}#{inst['instance_id']}"
-        cv2.putText(out, label, (x0 + 2, max(y0 + 10, 10)), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (255, 255, 255), 1, cv2.LINE_AA)
+        cv2.putText(
+            out, label, (x0 + 2, max(y0 + 10, 10)), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (255, 255, 255), 1, cv2.LINE_AA
+        )
     return out
 
 
-def contact_sheet(root: str | Path, out_png: str | Path, split: str | None = None, num_scenes: int = 4,
-                  views_per_scene: int = 4, tile: int = 256) -> Path:
+def contact_sheet(
+    root: str | Path,
+    out_png: str | Path,
+    split: str | None = None,
+    num_scenes: int = 4,
+    views_per_scene: int = 4,
+    tile: int = 256,
+) -> Path:
     """A grid PNG: one row per scene, evenly spaced views, masks and boxes overlaid."""
     manifest = load_manifest(root)
     split = split or next(iter(manifest["splits"]))
@@ -86,10 +95,21 @@ def contact_sheet(root: str | Path, out_png: str | Path, split: str | None = Non
             with decoding(row, dataset.source(scene_id)):
                 image = overlay_instances(decode_image(row["image"]), row["instances"], names)
             scale = tile / max(image.shape[:2])
-            image = cv2.resize(image, (round(image.shape[1] * scale), round(image.shape[0] * scale)), interpolation=cv2.INTER_AREA)
+            image = cv2.resize(
+                image, (round(image.shape[1] * scale), round(image.shape[0] * scale)), interpolation=cv2.INTER_AREA
+            )
             canvas = np.zeros((tile, tile, 3), np.uint8)
             canvas[: image.shape[0], : image.shape[1]] = image
-            cv2.putText(canvas, f"{scene_id} v{row['view_id']}", (4, tile - 6), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (255, 255, 0), 1, cv2.LINE_AA)
+            cv2.putText(
+                canvas,
+                f"{scene_id} v{row['view_id']}",
+                (4, tile - 6),
+                cv2.FONT_HERSHEY_SIMPLEX,
+                0.35,
+                (255, 255, 0),
+                1,
+                cv2.LINE_AA,
+            )
             tiles.append(canvas)
         tiles += [np.zeros((tile, tile, 3), np.uint8)] * (views_per_scene - len(tiles))
         rows.append(np.concatenate(tiles, axis=1))

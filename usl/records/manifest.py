@@ -1,4 +1,5 @@
 """``manifest.json``: the table of contents of a dataset folder, written last and atomically."""
+
 from __future__ import annotations
 
 import json

@@ -10,6 +10,7 @@ complete, readable dataset and a rerun finishes the job:
 2. the dataset card ``README.md`` (atomic); 3. the v2 ``manifest.json`` (atomic);
 4. the v1 shard files (and emptied split folders) are deleted, then ``.migrate.json``.
 """
+
 from __future__ import annotations
 
 import copy
@@ -23,7 +24,6 @@ from tqdm import tqdm
 
 from .atomic import write_json_atomic
 from .card import check_card_writable
-from .errors import UslError
 from .manifest import dataset_metadata, load_manifest, publish_dataset
 from .schema import SCHEMA_VERSION, dataset_schema, read_metadata, shard_file
 from .shards import _TableStream, raise_if_invalid, verify_file
@@ -42,12 +42,18 @@ class MigrationSummary:
 
     def describe(self, root: Path) -> str:
         if self.already_current:
-            return f"{root}: already schema v{SCHEMA_VERSION}" + (f"; removed {self.removed} v1 file(s) left over" if self.removed else "")
-        return (f"{root}: migrated to schema v{SCHEMA_VERSION}: {self.files} shard file(s) rewritten, "
-                f"{self.reused} kept from an interrupted run, {self.removed} v1 file(s) removed")
+            return f"{root}: already schema v{SCHEMA_VERSION}" + (
+                f"; removed {self.removed} v1 file(s) left over" if self.removed else ""
+            )
+        return (
+            f"{root}: migrated to schema v{SCHEMA_VERSION}: {self.files} shard file(s) rewritten, "
+            f"{self.reused} kept from an interrupted run, {self.removed} v1 file(s) removed"
+        )
 
 
-def _convert_file(root: Path, old: dict[str, Any], table: str, new_file: str, metadata: dict[str, Any]) -> dict[str, Any]:
+def _convert_file(
+    root: Path, old: dict[str, Any], table: str, new_file: str, metadata: dict[str, Any]
+) -> dict[str, Any]:
     """Rewrite one v1 shard file as v2, row group by row group; its new manifest entry."""
     source = pq.ParquetFile(root / old["file"])
     version = read_metadata(source.schema_arrow, old["file"])["schema_version"]
@@ -93,8 +99,13 @@ def migrate_dataset(root: str | Path, progress: bool = False) -> MigrationSummar
     metadata = {**dataset_metadata(manifest), "schema_version": SCHEMA_VERSION}
     new_manifest = copy.deepcopy(manifest)
     new_manifest.update(schema_version=SCHEMA_VERSION, migrated_from_schema_version=manifest["schema_version"])
-    jobs = [(split, shard, table) for split, entry in new_manifest["splits"].items()
-            for shard in entry["shards"] for table in TABLES if shard[table]]
+    jobs = [
+        (split, shard, table)
+        for split, entry in new_manifest["splits"].items()
+        for shard in entry["shards"]
+        for table in TABLES
+        if shard[table]
+    ]
     for split, shard, table in tqdm(jobs, desc="migrate", unit="file", disable=not progress):
         old = shard[table]
         new_file = shard_file(table, split, shard["index"])

@@ -3,6 +3,7 @@
 Shards are opened lazily and per process, so a ``RecordsDataset`` pickles cheaply into DataLoader
 workers and never shares a file handle across a fork.
 """
+
 from __future__ import annotations
 
 import os
@@ -141,7 +142,9 @@ class RecordsDataset:
         try:
             return shard.read_rows(loc.first_row, views, columns)
         except Exception as exc:  # corrupt pages: checksum, decompression or decoding errors
-            raise UslError(f"{shard.path}: scene {scene_id!r} views at positions {views}: cannot read ({one_line(exc)})") from exc
+            raise UslError(
+                f"{shard.path}: scene {scene_id!r} views at positions {views}: cannot read ({one_line(exc)})"
+            ) from exc
 
     @property
     def has_objects(self) -> bool:

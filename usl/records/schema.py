@@ -1,4 +1,5 @@
 """Arrow schemas built from ``data_specs/schema_v*.yaml`` (the single source of the record layout)."""
+
 from __future__ import annotations
 
 import json
@@ -92,7 +93,9 @@ def _hf_feature(spec: Any, names: list[str]) -> Any:
 def hf_features(table: str, categories: list[dict[str, Any]]) -> dict[str, Any]:
     """Hugging Face features of a v2 table: image decodes to PIL, category ids to class names."""
     names = class_label_names(categories)
-    return {f["name"]: _hf_feature(f["type"], names) for f in load_schema_spec(SCHEMA_VERSION)["tables"][table]["fields"]}
+    return {
+        f["name"]: _hf_feature(f["type"], names) for f in load_schema_spec(SCHEMA_VERSION)["tables"][table]["fields"]
+    }
 
 
 def dataset_schema(table: str, metadata: dict[str, Any]) -> pa.Schema:

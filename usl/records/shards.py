@@ -13,6 +13,7 @@ A long scene (a whole video) need not be in memory at once: a ``FrameSink`` in t
 its rows to a Parquet file group by group, and ``ShardWriter`` copies that file group by group.
 Row groups are cut the same way whichever path a scene takes, so the shard bytes do not depend on it.
 """
+
 from __future__ import annotations
 
 import hashlib
@@ -126,9 +127,14 @@ class _TableStream:
         self.writer = pq.ParquetWriter(
             self.tmp,
             schema,
-            compression={p: ("NONE" if p in payload or n in UNCOMPRESSED_FIELDS else "ZSTD")
-                         for n, paths in leaves.items() for p in paths},
-            use_dictionary=[p for n, paths in leaves.items() if n not in UNCOMPRESSED_FIELDS for p in paths if p not in payload],
+            compression={
+                p: ("NONE" if p in payload or n in UNCOMPRESSED_FIELDS else "ZSTD")
+                for n, paths in leaves.items()
+                for p in paths
+            },
+            use_dictionary=[
+                p for n, paths in leaves.items() if n not in UNCOMPRESSED_FIELDS for p in paths if p not in payload
+            ],
             column_encoding={p: "PLAIN" for p in payload} or None,
             write_statistics=["scene_id", "view_id"] if "view_id" in leaves else ["scene_id"],
             write_page_checksum=True,

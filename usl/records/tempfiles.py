@@ -6,6 +6,7 @@ temp file therefore carries its writer's token, and only files whose writer is g
 (``usl.records.claims`` judges who is gone). Build workers adopt their driver's token, so a spill
 a worker leaves behind belongs to the driver that started it.
 """
+
 from __future__ import annotations
 
 import uuid

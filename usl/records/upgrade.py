@@ -5,6 +5,7 @@ dataset reads exactly like its migrated copy. v1 -> v2: ``image`` bytes become t
 ``{bytes, path: null}``; instance ``bbox`` is renamed ``box_xyxy``; ``category_id`` widens to
 int64; every field becomes nullable (see ``schema.table_schema``).
 """
+
 from __future__ import annotations
 
 import pyarrow as pa

@@ -1,8 +1,9 @@
-"""Checking a dataset folder against the record spec (DESIGN.md §3), shard by shard.
+"""Checking a dataset folder against the record spec (docs/design.md §3), shard by shard.
 
 Returns every problem found rather than stopping at the first, each naming the shard file and,
 where it applies, the scene and view, so a broken conversion can be fixed in one pass.
 """
+
 from __future__ import annotations
 
 import json
@@ -114,7 +115,9 @@ def _check_frames(path: Path, shard: dict[str, Any], categories: set[int], decod
                 try:
                     image = decode_image(row["image"])
                     if image.shape[:2] != (row["height"], row["width"]):
-                        problems.append(f"{where}: image is {image.shape[1]}x{image.shape[0]}, row says {row['width']}x{row['height']}")
+                        problems.append(
+                            f"{where}: image is {image.shape[1]}x{image.shape[0]}, row says {row['width']}x{row['height']}"
+                        )
                 except UslError as exc:
                     problems.append(f"{where}: {exc}")
             ids = [inst["instance_id"] for inst in row["instances"]]
@@ -123,7 +126,9 @@ def _check_frames(path: Path, shard: dict[str, Any], categories: set[int], decod
             for inst in row["instances"]:
                 problems += [f"{where}: {p}" for p in _check_instance(inst, row["height"], row["width"])]
                 if inst["category_id"] not in categories:
-                    problems.append(f"{where}: instance {inst['instance_id']} has unknown category {inst['category_id']}")
+                    problems.append(
+                        f"{where}: instance {inst['instance_id']} has unknown category {inst['category_id']}"
+                    )
                 first_cat = categories_of.setdefault((row["scene_id"], inst["instance_id"]), inst["category_id"])
                 if first_cat != inst["category_id"]:
                     problems.append(
@@ -204,7 +209,9 @@ def validate_dataset(
             if integrity:
                 problems += integrity
                 continue
-            jobs.append((str(frames_path), lambda s=shard, p=frames_path: _check_frames(p, s, categories, decode_images)))
+            jobs.append(
+                (str(frames_path), lambda s=shard, p=frames_path: _check_frames(p, s, categories, decode_images))
+            )
             if shard["objects"]:
                 objects_path = root / shard["objects"]["file"]
                 jobs.append((str(objects_path), lambda o=objects_path, p=frames_path: _check_objects(o, p)))

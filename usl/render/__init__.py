@@ -1,9 +1,10 @@
 """Pure-torch rasterizers: sparse soft silhouettes, dynamic (per-object window) rendering,
-and a z-buffer for evaluation. Camera conventions: ``usl.geometry.cameras`` (DESIGN.md §2).
+and a z-buffer for evaluation. Camera conventions: ``usl.geometry.cameras`` (docs/design.md §2).
 
 Inputs are packed tensors, so a ``usl.geometry.meshes.Meshes`` batch plugs in as
 ``(meshes.verts_packed(), meshes.faces_packed(), meshes.faces_packed_to_mesh_idx())``.
 """
+
 from usl.render.dynamic import DynamicRender, render_dynamic
 from usl.render.hard import HardRender, rasterize_hard
 from usl.render.resample import resample_mask_area

@@ -19,6 +19,7 @@ The mesh is rasterized at ``resolution`` x ``resolution`` through ``K_window = A
 where A maps the window onto the R x R grid, and the target is the exact-area coverage
 of the true mask over each cell (:mod:`usl.render.resample`).
 """
+
 from __future__ import annotations
 
 from collections.abc import Sequence
@@ -179,7 +180,9 @@ def square_windows(boxes: Tensor, image_sizes: Tensor, padding: float, min_size:
 def _place(start: Tensor, slack: Tensor) -> Tensor:
     """Shift a window start into [min(0, slack), max(0, slack)]: inside the image if it fits,
     else covering the whole image extent along that axis."""
-    return torch.clamp(start, torch.minimum(slack, torch.zeros_like(slack)), torch.maximum(slack, torch.zeros_like(slack)))
+    return torch.clamp(
+        start, torch.minimum(slack, torch.zeros_like(slack)), torch.maximum(slack, torch.zeros_like(slack))
+    )
 
 
 def window_intrinsics(windows: Tensor, resolution: int) -> Tensor:

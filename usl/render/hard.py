@@ -2,13 +2,14 @@
 
 Many objects in many views in one call: every mesh (an object placed in one view's
 camera frame) belongs to one view, and each view has its own ``K``. A pixel is covered by
-a face when its centre (DESIGN.md §2: +0.5) lies inside the projected triangle, edges
+a face when its centre (docs/design.md §2: +0.5) lies inside the projected triangle, edges
 included; the nearest face wins, with ties going to the lower face index. Depth is the
 planar camera-frame z of the surface point seen through the pixel centre, interpolated
 perspective-correctly for any projective ``K``. Faces with a vertex at or behind the near
 plane are culled, not clipped. Sparse like the soft rasterizer: only pixels inside each
 face's 2D box are visited, in chunks of bounded size.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -76,10 +77,14 @@ def rasterize_hard(
     check_packed_inputs(verts, faces, mesh_idx, K, "rasterize_hard")
     faces, mesh_idx = faces.long(), mesh_idx.long()
     if num_meshes is None:
-        num_meshes = mesh_view.numel() if mesh_view is not None else (int(mesh_idx.max()) + 1 if mesh_idx.numel() else 0)
+        num_meshes = (
+            mesh_view.numel() if mesh_view is not None else (int(mesh_idx.max()) + 1 if mesh_idx.numel() else 0)
+        )
     if mesh_view is None:
         if K.shape[0] != 1:
-            raise ValueError(f"rasterize_hard: K has {K.shape[0]} views, so mesh_view (M,) must say which view each mesh is in")
+            raise ValueError(
+                f"rasterize_hard: K has {K.shape[0]} views, so mesh_view (M,) must say which view each mesh is in"
+            )
         mesh_view = torch.zeros(num_meshes, dtype=torch.long, device=verts.device)
     mesh_view = mesh_view.long()
     if mesh_view.shape != (num_meshes,):
@@ -102,7 +107,9 @@ def rasterize_hard(
         depth = perspective_depth(tuple(b.index_select(0, inside) for b in bary), screen.depths_of(face))
         chunk_z = torch.full_like(zbuf, torch.inf).scatter_reduce_(0, pixel, depth, "amin")
         winner = torch.nonzero(depth == chunk_z.index_select(0, pixel)).squeeze(1)
-        chunk_f = torch.full_like(fbuf, no_face).scatter_reduce_(0, pixel.index_select(0, winner), face.index_select(0, winner), "amin")
+        chunk_f = torch.full_like(fbuf, no_face).scatter_reduce_(
+            0, pixel.index_select(0, winner), face.index_select(0, winner), "amin"
+        )
         closer = chunk_z < zbuf
         zbuf = torch.where(closer, chunk_z, zbuf)
         fbuf = torch.where(closer, chunk_f, fbuf)

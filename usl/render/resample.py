@@ -1,11 +1,12 @@
 """Exact-area resampling of binary masks into axis-aligned windows.
 
 A window cell's value is the fraction of its area covered by true-mask pixels, each pixel
-taken as the unit square it occupies in the pixel frame (DESIGN.md §2). This is exact for
+taken as the unit square it occupies in the pixel frame (docs/design.md §2). This is exact for
 any fractional window, up- or downsampling alike, with no aliasing: the continuous
 integral of a piecewise-constant mask is the bilinear interpolation of its summed-area
 table at the cell corners. Area outside the image counts as uncovered.
 """
+
 from __future__ import annotations
 
 import math

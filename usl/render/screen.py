@@ -2,13 +2,14 @@
 
 Faces are projected per *window*: every face carries the index of the window (an
 (object, view) crop, or a whole view) it is drawn into, and each window has its own
-3x3 ``K`` mapping camera coordinates to that window's pixel frame (DESIGN.md §2: pixel
+3x3 ``K`` mapping camera coordinates to that window's pixel frame (docs/design.md §2: pixel
 centres at +0.5, general ``K`` with a homogeneous divide, via ``usl.geometry.cameras``).
 
 Sparsity comes from :func:`iter_face_pixels`: it walks only the (face, pixel) pairs
 whose pixel centre lies inside the face's 2D box (grown by a margin), in chunks of a
 bounded number of pairs, with no Python loop over faces or pixels.
 """
+
 from __future__ import annotations
 
 import math
@@ -104,7 +105,9 @@ def gather_rows(table: Tensor, index: Tensor) -> list[Tensor]:
     return [row.index_select(0, index) for row in table]
 
 
-def project_faces(verts: Tensor, faces: Tensor, face_window: Tensor, K: Tensor, near: float = DEFAULT_NEAR) -> ScreenFaces:
+def project_faces(
+    verts: Tensor, faces: Tensor, face_window: Tensor, K: Tensor, near: float = DEFAULT_NEAR
+) -> ScreenFaces:
     """Project packed faces with their window's ``K``, precompute per-face 2D data, and
     mark the faces to cull. Differentiable w.r.t. ``verts`` and ``K``.
 
@@ -127,10 +130,7 @@ def project_faces(verts: Tensor, faces: Tensor, face_window: Tensor, K: Tensor, 
     edges = torch.stack([ex, ey], dim=2).reshape(-1, 6)
     plane = torch.cat([corners, edges, inv_len2, inv_area[:, None]], dim=1).t().contiguous()
     visible = (
-        (w > near).all(-1)
-        & (z > near).all(-1)
-        & torch.isfinite(xy).all(-1).all(-1)
-        & (twice_area.abs() > _MIN_AREA)
+        (w > near).all(-1) & (z > near).all(-1) & torch.isfinite(xy).all(-1).all(-1) & (twice_area.abs() > _MIN_AREA)
     )
     return ScreenFaces(xy=xy, plane=plane, depths=torch.cat([w, z], dim=1).t().contiguous(), visible=visible)
 
@@ -181,14 +181,16 @@ def iter_face_pixels(boxes: FaceBoxes, chunk_size: int = DEFAULT_CHUNK_SIZE) -> 
         bounds = torch.searchsorted(ends, torch.tensor([start, stop - 1], device=ends.device), right=True).tolist()
         span = slice(bounds[0], bounds[1] + 1)  # the faces owning pairs start .. stop - 1
         repeats = ends[span].clamp_max(stop) - starts[span].clamp_min(start)
-        face = torch.repeat_interleave(torch.arange(span.start, span.stop, device=ends.device), repeats, output_size=stop - start)
+        face = torch.repeat_interleave(
+            torch.arange(span.start, span.stop, device=ends.device), repeats, output_size=stop - start
+        )
         local = torch.arange(start, stop, device=ends.device) - starts.index_select(0, face)
         nx = boxes.nx.index_select(0, face)
         yield face, boxes.x0.index_select(0, face) + local % nx, boxes.y0.index_select(0, face) + local // nx
 
 
 def pixel_centres(col: Tensor, row: Tensor, dtype: torch.dtype) -> tuple[Tensor, Tensor]:
-    """Continuous coordinates of pixel centres (DESIGN.md §2: +0.5)."""
+    """Continuous coordinates of pixel centres (docs/design.md §2: +0.5)."""
     return col.to(dtype) + 0.5, row.to(dtype) + 0.5
 
 
@@ -252,6 +254,8 @@ def check_packed_inputs(verts: Tensor, faces: Tensor, face_window: Tensor, K: Te
     if faces.dim() != 2 or faces.shape[-1] != 3:
         raise ValueError(f"{where}: faces must be (F, 3), got {tuple(faces.shape)}")
     if face_window.shape != faces.shape[:1]:
-        raise ValueError(f"{where}: the per-face index must be (F,) = ({faces.shape[0]},), got {tuple(face_window.shape)}")
+        raise ValueError(
+            f"{where}: the per-face index must be (F,) = ({faces.shape[0]},), got {tuple(face_window.shape)}"
+        )
     if K.dim() != 3 or K.shape[-2:] != (3, 3):
         raise ValueError(f"{where}: K must be (P, 3, 3), got {tuple(K.shape)}")

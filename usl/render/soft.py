@@ -22,6 +22,7 @@ with gradients for the kept pairs only, in checkpointed chunks, so memory stays 
 by ``chunk_size``. :func:`rasterize_soft_dense` evaluates every (pixel, face) pair; it
 exists as the reference for tests and the benchmark.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -104,7 +105,9 @@ def rasterize_soft(
     faces, face_window = faces.long(), face_window.long()
     num_windows = K.shape[0]
     if num_windows * height * width >= 1 << 31:  # flat pixel indices must fit the sort key
-        raise ValueError(f"rasterize_soft: {num_windows} windows of {height}x{width} exceed 2**31 pixels; split the batch")
+        raise ValueError(
+            f"rasterize_soft: {num_windows} windows of {height}x{width} exceed 2**31 pixels; split the batch"
+        )
     screen = project_faces(verts, faces, face_window, K, settings.near)
     face, pixel = _select_pairs(screen, face_window, height, width, settings)
     scale = ndc_scale(height, width) ** 2 / settings.sigma
@@ -114,13 +117,26 @@ def rasterize_soft(
     checkpointed = torch.is_grad_enabled() and screen.plane.requires_grad and face.numel() > settings.chunk_size
     # At least one (possibly empty) chunk, so a blank render stays attached to the graph.
     for start in range(0, max(face.numel(), 1), settings.chunk_size):
-        args = (screen.plane, face[start : start + settings.chunk_size], pixel[start : start + settings.chunk_size], height, width, scale)
-        terms = checkpoint(_log_transparency_terms, *args, use_reentrant=False) if checkpointed else _log_transparency_terms(*args)
+        args = (
+            screen.plane,
+            face[start : start + settings.chunk_size],
+            pixel[start : start + settings.chunk_size],
+            height,
+            width,
+            scale,
+        )
+        terms = (
+            checkpoint(_log_transparency_terms, *args, use_reentrant=False)
+            if checkpointed
+            else _log_transparency_terms(*args)
+        )
         log_transparency = log_transparency.index_add(0, args[2], terms)
     return (-torch.expm1(log_transparency)).view(num_windows, height, width)
 
 
-def _log_transparency_terms(plane: Tensor, face: Tensor, pixel: Tensor, height: int, width: int, scale: float) -> Tensor:
+def _log_transparency_terms(
+    plane: Tensor, face: Tensor, pixel: Tensor, height: int, width: int, scale: float
+) -> Tensor:
     """log(1 - p) = log sigmoid(d / sigma) for each (face, flat pixel) pair; ``plane`` is
     the (16, F) table of :class:`Plane` rows."""
     px, py = pixel_centres(pixel % width, (pixel // width) % height, plane.dtype)
@@ -129,7 +145,9 @@ def _log_transparency_terms(plane: Tensor, face: Tensor, pixel: Tensor, height: 
 
 
 @torch.no_grad()
-def _select_pairs(screen: ScreenFaces, face_window: Tensor, height: int, width: int, settings: SoftRasterSettings) -> tuple[Tensor, Tensor]:
+def _select_pairs(
+    screen: ScreenFaces, face_window: Tensor, height: int, width: int, settings: SoftRasterSettings
+) -> tuple[Tensor, Tensor]:
     """(face, flat pixel) pairs within the blur radius, capped to the nearest K per pixel.
 
     The flat pixel index is ``window * H * W + row * W + col``.
@@ -145,7 +163,9 @@ def _select_pairs(screen: ScreenFaces, face_window: Tensor, height: int, width: 
         face = face.index_select(0, near_enough)
         faces_kept.append(face)
         window = face_window.index_select(0, face)
-        pixels_kept.append((window * height + row.index_select(0, near_enough)) * width + col.index_select(0, near_enough))
+        pixels_kept.append(
+            (window * height + row.index_select(0, near_enough)) * width + col.index_select(0, near_enough)
+        )
         if settings.faces_per_pixel is not None:
             bary = tuple(b.index_select(0, near_enough) for b in bary)
             depths_kept.append(perspective_depth(bary, screen.depths_of(face), clip=True))
@@ -208,7 +228,9 @@ def rasterize_soft_dense(
     num_windows = K.shape[0]
     screen = project_faces(verts, faces, face_window, K, settings.near)
     scale2 = ndc_scale(height, width) ** 2
-    rows, cols = torch.meshgrid(torch.arange(height, device=verts.device), torch.arange(width, device=verts.device), indexing="ij")
+    rows, cols = torch.meshgrid(
+        torch.arange(height, device=verts.device), torch.arange(width, device=verts.device), indexing="ij"
+    )
     px, py = pixel_centres(cols.reshape(-1, 1), rows.reshape(-1, 1), verts.dtype)  # (H*W, 1)
     silhouettes = []
     for window in range(num_windows):
@@ -217,7 +239,9 @@ def rasterize_soft_dense(
         dist = dist * scale2
         candidate = dist.detach() <= settings.blur_radius
         if settings.faces_per_pixel is not None and in_window.numel() > 0:
-            depth = perspective_depth(tuple(b.detach() for b in bary), Depths(*(d.detach() for d in screen.depths_of(in_window))), clip=True)
+            depth = perspective_depth(
+                tuple(b.detach() for b in bary), Depths(*(d.detach() for d in screen.depths_of(in_window))), clip=True
+            )
             depth = torch.where(candidate, _ordering_depth(depth), torch.inf)
             candidate = candidate & _nearest_dense(depth, settings.faces_per_pixel)
         log_t = torch.where(candidate, F.logsigmoid(dist / settings.sigma), torch.zeros_like(dist))

@@ -1,4 +1,5 @@
 """Session fixtures: the Hypersim inputs of ``hypersim_inputs`` written once, and conversions of them."""
+
 import sys
 from pathlib import Path
 
@@ -22,13 +23,13 @@ def native(inputs, tmp_path_factory) -> Path:
 
 @pytest.fixture(scope="session")
 def half(inputs, tmp_path_factory) -> Path:
-    return convert(inputs, tmp_path_factory.mktemp("half") / "records", "--resolution", "32x24",
-                   "--image-codec", "png")
+    return convert(inputs, tmp_path_factory.mktemp("half") / "records", "--resolution", "32x24", "--image-codec", "png")
 
 
 @pytest.fixture(scope="session")
 def exr_native(tmp_path_factory) -> Path:
     """The same scenes as renderer EXRs (+ label HDF5s), converted like ``native``."""
     exr_inputs = write_inputs(tmp_path_factory.mktemp("hypersim_exr"), exr=True)
-    return convert(exr_inputs, tmp_path_factory.mktemp("exr") / "records", "--image-codec", "png",
-                   "--input-format", "exr")
+    return convert(
+        exr_inputs, tmp_path_factory.mktemp("exr") / "records", "--image-codec", "png", "--input-format", "exr"
+    )

@@ -10,6 +10,7 @@ with one ``dataset`` each; or renderer EXRs for the EXR layout.
 
 Reusable: ``make_scene`` / ``render`` / ``write_scene`` / ``write_split_csv`` / ``write_camera_csv``.
 """
+
 from __future__ import annotations
 
 import csv
@@ -83,13 +84,25 @@ def room_boxes(scale: float) -> list[Box]:
     ]
 
 
-def make_scene(name: str = "ai_001_001", width: int = 64, height: int = 48, tilt_shift: bool = True,
-               meters_per_asset_unit: float = 0.0254, cameras: tuple[str, ...] = ("cam_00",),
-               keyframes: int = 8) -> SyntheticScene:
+def make_scene(
+    name: str = "ai_001_001",
+    width: int = 64,
+    height: int = 48,
+    tilt_shift: bool = True,
+    meters_per_asset_unit: float = 0.0254,
+    cameras: tuple[str, ...] = ("cam_00",),
+    keyframes: int = 8,
+) -> SyntheticScene:
     """A room scene; each camera walks a short arc at eye height with a little roll."""
     s = 1.0 / meters_per_asset_unit
-    scene = SyntheticScene(name, meters_per_asset_unit, TILT_SHIFT_M if tilt_shift else CANONICAL_M,
-                           width, height, room_boxes(meters_per_asset_unit))
+    scene = SyntheticScene(
+        name,
+        meters_per_asset_unit,
+        TILT_SHIFT_M if tilt_shift else CANONICAL_M,
+        width,
+        height,
+        room_boxes(meters_per_asset_unit),
+    )
     for c, camera in enumerate(cameras):
         frames = []
         for k in range(keyframes):
@@ -114,8 +127,9 @@ class FrameTruth:
     position: np.ndarray  # (H, W, 3) float32 hit points in asset units (EXR VRayPosition)
 
 
-def render(scene: SyntheticScene, camera: str, frame: int, width: int | None = None,
-           height: int | None = None) -> FrameTruth:
+def render(
+    scene: SyntheticScene, camera: str, frame: int, width: int | None = None, height: int | None = None
+) -> FrameTruth:
     """Ray-cast one keyframe at ``width`` x ``height`` (default: the scene's size)."""
     width, height = width or scene.width, height or scene.height
     key = scene.trajectories[camera][frame]
@@ -153,9 +167,13 @@ def render(scene: SyntheticScene, camera: str, frame: int, width: int | None = N
     rgb = np.where(valid[:, None], albedo * np.nan_to_num(shade)[:, None] * 2.0, albedo)
     return FrameTruth(
         points=(position * scene.meters_per_asset_unit).reshape(height, width, 3),
-        distance=distance.reshape(height, width), planar=planar.reshape(height, width),
-        instance=per_box("instance_id", -1), semantic=per_box("semantic", -1), entity=per_box("entity_id", -1),
-        rgb=rgb.reshape(height, width, 3).astype(np.float32), face=best_face.reshape(height, width),
+        distance=distance.reshape(height, width),
+        planar=planar.reshape(height, width),
+        instance=per_box("instance_id", -1),
+        semantic=per_box("semantic", -1),
+        entity=per_box("entity_id", -1),
+        rgb=rgb.reshape(height, width, 3).astype(np.float32),
+        face=best_face.reshape(height, width),
         position=position.reshape(height, width, 3).astype(np.float32),
     )
 
@@ -176,19 +194,20 @@ def write_exr(path: Path, channels: dict[str, np.ndarray]) -> None:
         exr.write(str(path))
 
 
-def write_scene(root: Path, scene: SyntheticScene, frames: dict[str, list[int]], exr: bool = False,
-                compression: int | None = 9) -> Path:
+def write_scene(
+    root: Path, scene: SyntheticScene, frames: dict[str, list[int]], exr: bool = False, compression: int | None = 9
+) -> Path:
     """Write ``scene`` under ``root/<name>``: metadata, keyframes, and the listed frames' images."""
     scene_dir = Path(root) / scene.name
     detail = scene_dir / "_detail"
     detail.mkdir(parents=True, exist_ok=True)
     (detail / "metadata_scene.csv").write_text(
-        f"parameter_name,parameter_value\nmeters_per_asset_unit,{scene.meters_per_asset_unit!r}\n")
+        f"parameter_name,parameter_value\nmeters_per_asset_unit,{scene.meters_per_asset_unit!r}\n"
+    )
     (detail / "metadata_cameras.csv").write_text("camera_name\n" + "".join(f"{c}\n" for c in scene.trajectories))
     for camera, keyframes in scene.trajectories.items():
         write_hdf5(detail / camera / "camera_keyframe_positions.hdf5", np.stack([k.position for k in keyframes]))
-        write_hdf5(detail / camera / "camera_keyframe_orientations.hdf5",
-                   np.stack([k.orientation for k in keyframes]))
+        write_hdf5(detail / camera / "camera_keyframe_orientations.hdf5", np.stack([k.orientation for k in keyframes]))
         write_hdf5(detail / camera / "camera_keyframe_frame_indices.hdf5", np.arange(len(keyframes)))
         images = scene_dir / "images"
         for frame in frames.get(camera, []):
@@ -198,31 +217,50 @@ def write_scene(root: Path, scene: SyntheticScene, frames: dict[str, list[int]],
             write_hdf5(geometry / f"{name}.semantic.hdf5", truth.semantic, compression)
             write_hdf5(geometry / f"{name}.semantic_instance.hdf5", truth.instance, compression)
             if exr:
-                write_exr(images / f"scene_{camera}_final" / f"{name}.exr",
-                          {c: truth.rgb[..., k] for k, c in enumerate("RGB")})
+                write_exr(
+                    images / f"scene_{camera}_final" / f"{name}.exr",
+                    {c: truth.rgb[..., k] for k, c in enumerate("RGB")},
+                )
                 entity = truth.entity.astype(np.float32)
                 entity[entity < 0] = 0.0  # V-Ray writes 0 where no entity was hit
                 channels = {"VRayRenderEntityID": entity}
                 channels.update({f"VRayPosition.{c}": truth.position[..., k] for k, c in enumerate("RGB")})
                 write_exr(images / f"scene_{camera}_geometry" / f"{name}.exr", channels)
                 continue
-            write_hdf5(images / f"scene_{camera}_final_hdf5" / f"{name}.color.hdf5", truth.rgb.astype(np.float16),
-                       compression)
+            write_hdf5(
+                images / f"scene_{camera}_final_hdf5" / f"{name}.color.hdf5", truth.rgb.astype(np.float16), compression
+            )
             write_hdf5(geometry / f"{name}.depth_meters.hdf5", truth.distance.astype(np.float16), compression)
             write_hdf5(geometry / f"{name}.render_entity_id.hdf5", truth.entity, compression)
     return scene_dir
 
 
-SPLIT_HEADER = ["scene_name", "camera_name", "frame_id", "included_in_public_release", "exclude_reason",
-                "split_partition_name"]
+SPLIT_HEADER = [
+    "scene_name",
+    "camera_name",
+    "frame_id",
+    "included_in_public_release",
+    "exclude_reason",
+    "split_partition_name",
+]
 
 
-def split_rows(scene: str, camera: str, frames: range | list[int], split: str,
-               excluded: dict[int, str] | None = None) -> list[list[str]]:
+def split_rows(
+    scene: str, camera: str, frames: range | list[int], split: str, excluded: dict[int, str] | None = None
+) -> list[list[str]]:
     """Split-CSV rows of one trajectory; ``excluded`` maps frame -> exclude_reason."""
     excluded = excluded or {}
-    return [[scene, camera, str(f), "False" if f in excluded else "True", excluded.get(f, ""),
-             "" if f in excluded else split] for f in frames]
+    return [
+        [
+            scene,
+            camera,
+            str(f),
+            "False" if f in excluded else "True",
+            excluded.get(f, ""),
+            "" if f in excluded else split,
+        ]
+        for f in frames
+    ]
 
 
 def write_split_csv(path: Path, rows: list[list[str]]) -> Path:
@@ -237,14 +275,28 @@ def write_camera_csv(path: Path, scenes: list[SyntheticScene]) -> Path:
     """Columns as in contrib/mikeroberts3000/metadata_camera_parameters.csv (the ones we read, and a
     few we do not, to show extra columns are tolerated)."""
     m_columns = [f"M_cam_from_uv_{i}{j}" for i in range(3) for j in range(3)]
-    header = ["scene_name", "settings_output_img_height", "settings_output_img_width",
-              "settings_units_info_meters_scale", "use_camera_physical", *m_columns]
+    header = [
+        "scene_name",
+        "settings_output_img_height",
+        "settings_output_img_width",
+        "settings_units_info_meters_scale",
+        "use_camera_physical",
+        *m_columns,
+    ]
     with open(path, "w", newline="") as f:
         writer = csv.writer(f)
         writer.writerow(header)
         for s in scenes:
-            writer.writerow([s.name, float(s.height), float(s.width), s.meters_per_asset_unit, "False",
-                             *s.m_cam_from_uv.reshape(-1).tolist()])
+            writer.writerow(
+                [
+                    s.name,
+                    float(s.height),
+                    float(s.width),
+                    s.meters_per_asset_unit,
+                    "False",
+                    *s.m_cam_from_uv.reshape(-1).tolist(),
+                ]
+            )
     return path
 
 

@@ -2,6 +2,7 @@
 
 A uniquely named module (not conftest) so tests can import it whatever else is on sys.path.
 """
+
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -32,8 +33,19 @@ class Inputs:
     scenes: dict[str, SyntheticScene]
 
     def argv(self, out: Path, *extra: str) -> list[str]:
-        return [str(self.scenes_root), "--split-csv", str(self.split_csv), "--camera-csv", str(self.camera_csv),
-                "--out", str(out), "--quiet", "--min-instance-pixels", str(MIN_PIXELS), *extra]
+        return [
+            str(self.scenes_root),
+            "--split-csv",
+            str(self.split_csv),
+            "--camera-csv",
+            str(self.camera_csv),
+            "--out",
+            str(out),
+            "--quiet",
+            "--min-instance-pixels",
+            str(MIN_PIXELS),
+            *extra,
+        ]
 
 
 def write_inputs(root: Path, exr: bool = False) -> Inputs:
@@ -79,8 +91,10 @@ def write_inputs(root: Path, exr: bool = False) -> Inputs:
     b_geometry = b_dir / "images" / "scene_cam_00_geometry_hdf5"
     truncate(b_geometry / "frame.0001.semantic.hdf5")
     edit_hdf5(b_geometry / "frame.0003.semantic.hdf5", lambda s: s[::2, ::2].copy())
-    edit_hdf5(b_dir / "_detail" / "cam_00" / "camera_keyframe_orientations.hdf5",
-              lambda r: np.concatenate([r[:1] * 1.2, r[1:]]))
+    edit_hdf5(
+        b_dir / "_detail" / "cam_00" / "camera_keyframe_orientations.hdf5",
+        lambda r: np.concatenate([r[:1] * 1.2, r[1:]]),
+    )
     return Inputs(scenes_root, split_csv, camera_csv, {"ai_001_001": a, "ai_002_001": b})
 
 

@@ -1,4 +1,5 @@
 """The command line: options, parallel/sharded/resumed builds, and clear errors for bad input."""
+
 import shutil
 
 import pyarrow.parquet as pq
@@ -12,8 +13,11 @@ from usl.records.validate import validate_dataset
 
 def all_rows(root):
     manifest = load_manifest(root)
-    return {split: pq.read_table(root / shard["frames"]["file"]).to_pylist()
-            for split, entry in manifest["splits"].items() for shard in entry["shards"]}
+    return {
+        split: pq.read_table(root / shard["frames"]["file"]).to_pylist()
+        for split, entry in manifest["splits"].items()
+        for shard in entry["shards"]
+    }
 
 
 def test_workers_and_machines_give_the_same_records(inputs, native, tmp_path):
@@ -38,8 +42,18 @@ def test_a_second_run_resumes(inputs, tmp_path, capsys):
 
 
 def test_filters_stride_and_stuff_exclusion(inputs, tmp_path):
-    out = convert(inputs, tmp_path / "records", "--blacklist", "ai_002_001", "--stride", "2",
-                  "--exclude-categories", "stuff", "--resolution", "48x36")
+    out = convert(
+        inputs,
+        tmp_path / "records",
+        "--blacklist",
+        "ai_002_001",
+        "--stride",
+        "2",
+        "--exclude-categories",
+        "stuff",
+        "--resolution",
+        "48x36",
+    )
     assert validate_dataset(out) == []
     assert load_manifest(out)["schema_version"] == 2 and (out / "frames" / "train").is_dir()
     (rows,) = all_rows(out).values()
@@ -53,12 +67,15 @@ def test_filters_stride_and_stuff_exclusion(inputs, tmp_path):
     assert set(load_manifest(only_val)["splits"]) == {"val"}
 
 
-@pytest.mark.parametrize("extra, message", [
-    (["--resolution", "64by48"], "--resolution '64by48'"),
-    (["--exclude-categories", "sofas"], "'sofas' is not a Hypersim category"),
-    (["--blacklist", "ai_1_1"], "blacklist entry 'ai_1_1'"),
-    (["--splits", "nosuchsplit"], "nothing to convert"),
-])
+@pytest.mark.parametrize(
+    "extra, message",
+    [
+        (["--resolution", "64by48"], "--resolution '64by48'"),
+        (["--exclude-categories", "sofas"], "'sofas' is not a Hypersim category"),
+        (["--blacklist", "ai_1_1"], "blacklist entry 'ai_1_1'"),
+        (["--splits", "nosuchsplit"], "nothing to convert"),
+    ],
+)
 def test_bad_arguments_are_one_line_errors(inputs, tmp_path, capsys, extra, message):
     assert main(inputs.argv(tmp_path / "out", *extra)) == 2
     assert message in capsys.readouterr().err
@@ -73,8 +90,10 @@ def test_scenes_missing_from_the_csvs_are_errors_naming_the_csv(inputs, tmp_path
     assert main(argv) == 2
     assert f"{camera_csv}: no camera parameters for scene ai_002_001" in capsys.readouterr().err
     split_csv = tmp_path / "split.csv"
-    split_csv.write_text("\n".join(line for line in inputs.split_csv.read_text().splitlines()
-                                   if not line.startswith("ai_002_001")) + "\n")
+    split_csv.write_text(
+        "\n".join(line for line in inputs.split_csv.read_text().splitlines() if not line.startswith("ai_002_001"))
+        + "\n"
+    )
     argv = inputs.argv(tmp_path / "out2")
     argv[argv.index("--split-csv") + 1] = str(split_csv)
     assert main(argv) == 2

@@ -1,4 +1,5 @@
 """End-to-end: synthetic Hypersim folders -> records, checked against the ray-cast ground truth."""
+
 import numpy as np
 import pytest
 import torch
@@ -8,6 +9,7 @@ from hypersim_fixture import render
 from usl.geometry.cameras import project, scale_intrinsics, transform_points, unproject
 from usl.records import RecordsDataset, decode_depth, decode_image, decode_mask, frame_K, frame_pose, load_manifest
 from usl.records.validate import validate_dataset
+
 
 # Planar depth passes through float16 distances (relative 2^-11) and millimetre PNG (0.5 mm).
 def tolerance(distance):
@@ -37,7 +39,7 @@ def on_one_plane(inputs, row):
         face[NAN_PATCH] = -1  # unknown depth in the source
     padded = np.pad(face, 1, mode="edge")
     h, w = row["height"], row["width"]
-    blocks = np.stack([padded[dy:dy + 2 * h:2, dx:dx + 2 * w:2] for dy in range(4) for dx in range(4)])
+    blocks = np.stack([padded[dy : dy + 2 * h : 2, dx : dx + 2 * w : 2] for dy in range(4) for dx in range(4)])
     return (blocks == blocks[0]).all(axis=0) & (blocks[0] >= 0)
 
 
@@ -67,13 +69,15 @@ def test_skips_name_their_reason_and_file(native):
     for s in skips:
         by_reason.setdefault(s["reason"], []).append(s)
     assert [(s["path"], s["count"]) for s in by_reason["official exclusion: CONTENT FLAGGED FOR REMOVAL"]] == [
-        ("ai_001_001/cam_00", 1)]
+        ("ai_001_001/cam_00", 1)
+    ]
     outside = by_reason["official exclusion: OUTSIDE VIEWING AREA (BAD TRAJECTORY)"]
     assert [(s["path"], s["count"]) for s in outside] == [("ai_001_001/cam_01", 8)]
     missing = sorted(s["path"].split("/")[-1] for s in by_reason["missing depth_meters file"])
     assert missing == ["frame.0003.depth_meters.hdf5", "frame.0006.depth_meters.hdf5", "frame.0007.depth_meters.hdf5"]
     assert by_reason["camera orientation is not a rotation"][0]["path"].endswith(
-        "ai_002_001/_detail/cam_00/camera_keyframe_orientations.hdf5")
+        "ai_002_001/_detail/cam_00/camera_keyframe_orientations.hdf5"
+    )
     assert by_reason["unreadable semantic HDF5 (OSError)"][0]["path"].endswith("frame.0001.semantic.hdf5")
     assert by_reason["no valid geometry in frame"][0]["path"].endswith("frame.0002.depth_meters.hdf5")
     shape = [r for r in by_reason if r.startswith("frame arrays disagree in shape")]
@@ -198,7 +202,7 @@ def test_images_are_hypersims_tone_mapping(native, inputs):
             rgb = truth.rgb.astype(np.float16).astype(np.float64)
             valid = truth.entity != -1
             brightness = 0.3 * rgb[..., 0] + 0.59 * rgb[..., 1] + 0.11 * rgb[..., 2]
-            scale = 0.8 ** 2.2 / np.percentile(brightness[valid], 90)
+            scale = 0.8**2.2 / np.percentile(brightness[valid], 90)
             expected = np.clip(np.power(np.maximum(scale * rgb, 0), 1 / 2.2), 0, 1) * 255
             got = decode_image(row["image"]).astype(np.float64)
             assert np.abs(got - expected).max() <= 0.6
@@ -228,7 +232,8 @@ def test_exr_input_gives_the_same_records(native, exr_native):
             np.testing.assert_array_equal(frame_K(a), frame_K(b))
             np.testing.assert_array_equal(frame_pose(a), frame_pose(b))
             assert [(i["instance_id"], i["category_id"], i["mask"]) for i in a["instances"]] == [
-                (i["instance_id"], i["category_id"], i["mask"]) for i in b["instances"]]
+                (i["instance_id"], i["category_id"], i["mask"]) for i in b["instances"]
+            ]
             da, db = decode_depth(a["depth"]), decode_depth(b["depth"])
             both = np.isfinite(da) & np.isfinite(db)
             assert both.sum() > 0.5 * da.size

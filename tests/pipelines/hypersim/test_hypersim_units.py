@@ -1,5 +1,6 @@
 """The converter's pieces against independent oracles: camera maths, tone mapping, resampling,
 instance extraction, metadata parsing and frame readers."""
+
 import math
 
 import h5py
@@ -29,8 +30,7 @@ from usl.records import UslError, make_instance
 def test_canonical_camera_is_the_documented_60_degree_pinhole():
     """Hypersim's canonical scenes: 60 deg horizontal FoV, focal 886.81 px at 1024x768, centred."""
     K = intrinsics_from_m_cam_from_uv(CANONICAL_M, 1024, 768)
-    np.testing.assert_allclose(K, [[886.8100134752651, 0, 512], [0, 886.8100134752651, 384], [0, 0, 1]],
-                               atol=1e-9)
+    np.testing.assert_allclose(K, [[886.8100134752651, 0, 512], [0, 886.8100134752651, 384], [0, 0, 1]], atol=1e-9)
 
 
 @pytest.mark.parametrize("m", [TILT_SHIFT_M, CANONICAL_M])
@@ -50,13 +50,39 @@ def test_K_sends_hypersims_pixel_rays_to_pixel_centres(m):
 
 # Scene ai_037_002 (tilt-shift) in contrib/mikeroberts3000/metadata_camera_parameters.csv: its ray
 # matrix and, independently, the OpenGL projection matrix Hypersim publishes for projecting points.
-AI_037_002_M_CAM_FROM_UV = np.array([0.579607251426182, 0.0, -0.06955286861651404, 0.0, 0.4346865334657201,
-                                     0.09273312506660672, -0.0, 0.004054126980668954, -1.003909173803896]).reshape(3, 3)
-AI_037_002_M_PROJ = np.array([
-    1.7253062268275619, 0.001113868662274642, -0.11942983282195321, 0.0,
-    0.0, 2.2985281393428907, 0.21231970279458348, 0.0,
-    0.0, 0.009300822120943601, -0.9972411188430887, -2.002002002002002,
-    0.0, 0.009282239059762895, -0.9952486290951505, 0.0]).reshape(4, 4)
+AI_037_002_M_CAM_FROM_UV = np.array(
+    [
+        0.579607251426182,
+        0.0,
+        -0.06955286861651404,
+        0.0,
+        0.4346865334657201,
+        0.09273312506660672,
+        -0.0,
+        0.004054126980668954,
+        -1.003909173803896,
+    ]
+).reshape(3, 3)
+AI_037_002_M_PROJ = np.array(
+    [
+        1.7253062268275619,
+        0.001113868662274642,
+        -0.11942983282195321,
+        0.0,
+        0.0,
+        2.2985281393428907,
+        0.21231970279458348,
+        0.0,
+        0.0,
+        0.009300822120943601,
+        -0.9972411188430887,
+        -2.002002002002002,
+        0.0,
+        0.009282239059762895,
+        -0.9952486290951505,
+        0.0,
+    ]
+).reshape(4, 4)
 
 
 def test_K_agrees_with_hypersims_projection_matrix():
@@ -153,8 +179,8 @@ def test_tonemap_scale_rules():
     none = np.zeros((4, 4), bool)
     assert tonemap_scale(rgb, none) == 1.0  # no pixel with geometry
     assert tonemap_scale(rgb * 1e-6, ~none) == 0.0  # too dark to scale
-    assert tonemap_scale(rgb, ~none) == pytest.approx(0.8 ** 2.2 / 2.0)
-    image = apply_tonemap(rgb, 0.8 ** 2.2 / 2.0)
+    assert tonemap_scale(rgb, ~none) == pytest.approx(0.8**2.2 / 2.0)
+    image = apply_tonemap(rgb, 0.8**2.2 / 2.0)
     assert (image == round(0.8 * 255)).all()
     rgb[0, 0] = np.nan
     assert apply_tonemap(rgb, 1.0)[0, 0].tolist() == [0, 0, 0]
@@ -226,7 +252,8 @@ def test_instance_entries_equal_make_instance(seed):
         for key in ("instance_id", "mask", "box_xyxy", "area"):
             assert got[key] == expected[key], key
         assert (math.isnan(got["depth_min"]) and math.isnan(expected["depth_min"])) or (
-            got["depth_min"] == expected["depth_min"])
+            got["depth_min"] == expected["depth_min"]
+        )
 
 
 def test_instance_entries_of_an_empty_frame():

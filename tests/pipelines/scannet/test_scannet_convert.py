@@ -1,5 +1,6 @@
 """End to end: ``usl-convert-scannet`` on a .sens scan and an exported scan, checked against the
 synthetic truth, the record validator, and what a view sampler needs to read back."""
+
 from __future__ import annotations
 
 import dataclasses
@@ -24,8 +25,19 @@ SENS_SCENE, EXPORTED_SCENE = "scene0001_00", "scene0002_00"
 
 
 def convert(synthetic, out, *extra: str) -> int:
-    args = ["--out", str(out), "--quiet", "--scans-root", str(synthetic.scans), "--splits-dir", str(synthetic.splits),
-            "--stride", "1", "--resolution", "48x36"]
+    args = [
+        "--out",
+        str(out),
+        "--quiet",
+        "--scans-root",
+        str(synthetic.scans),
+        "--splits-dir",
+        str(synthetic.splits),
+        "--stride",
+        "1",
+        "--resolution",
+        "48x36",
+    ]
     if "--masks" not in extra:  # later arguments win
         args += ["--detections", *map(str, synthetic.results), "--detection-images", str(synthetic.images)]
     return main(args + list(extra))
@@ -57,7 +69,11 @@ def track_frames(dataset: RecordsDataset, scene_id: str) -> dict[int, list[int]]
 def test_records_are_valid_and_complete(converted, synthetic):
     assert validate_dataset(converted) == []
     manifest = load_manifest(converted)
-    assert manifest["schema_version"] == 2 and (converted / "frames" / "train").is_dir() and (converted / "README.md").exists()
+    assert (
+        manifest["schema_version"] == 2
+        and (converted / "frames" / "train").is_dir()
+        and (converted / "README.md").exists()
+    )
     assert set(manifest["splits"]) == {"train", "val"}
     assert skips_of(converted) == {SKIP_POSE: 2 * len(synthetic.lost)}
     train = RecordsDataset(converted, "train")
@@ -105,8 +121,23 @@ def test_exported_scan_gives_the_same_records(converted):
 
 def test_native_size_keeps_the_stored_jpeg_and_labels_give_ground_truth_tracks(synthetic, tmp_path):
     out = tmp_path / "native"
-    assert convert(synthetic, out, "--resolution", "native", "--splits", "train", "--masks", "scannet-labels",
-                   "--label-map", str(synthetic.labels), "--tracker", "source-ids") == 0
+    assert (
+        convert(
+            synthetic,
+            out,
+            "--resolution",
+            "native",
+            "--splits",
+            "train",
+            "--masks",
+            "scannet-labels",
+            "--label-map",
+            str(synthetic.labels),
+            "--tracker",
+            "source-ids",
+        )
+        == 0
+    )
     assert validate_dataset(out) == []
     rows = RecordsDataset(out, "train").read_scene(SENS_SCENE)
     for row in rows[::20]:
@@ -149,13 +180,36 @@ def test_bad_input_fails_with_the_file_named(synthetic, tmp_path, capsys):
     broken.mkdir(parents=True)
     data = synthetic.sens.read_bytes()
     (broken / f"{SENS_SCENE}.sens").write_bytes(data[: len(data) // 2])
-    args = ["--out", str(tmp_path / "b"), "--quiet", "--scans-root", str(tmp_path / "scans"), "--splits-dir",
-            str(synthetic.splits), "--splits", "train", "--masks", "scannet-labels",
-            "--label-map", str(synthetic.labels)]
+    args = [
+        "--out",
+        str(tmp_path / "b"),
+        "--quiet",
+        "--scans-root",
+        str(tmp_path / "scans"),
+        "--splits-dir",
+        str(synthetic.splits),
+        "--splits",
+        "train",
+        "--masks",
+        "scannet-labels",
+        "--label-map",
+        str(synthetic.labels),
+    ]
     assert main(args) == 2
     assert f"{SENS_SCENE}.sens: truncated .sens file" in capsys.readouterr().err
-    missing = ["--out", str(tmp_path / "c"), "--quiet", "--scans-root", str(tmp_path / "scans"),
-               "--splits-dir", str(synthetic.splits), "--masks", "scannet-labels", "--label-map", str(synthetic.labels)]
+    missing = [
+        "--out",
+        str(tmp_path / "c"),
+        "--quiet",
+        "--scans-root",
+        str(tmp_path / "scans"),
+        "--splits-dir",
+        str(synthetic.splits),
+        "--masks",
+        "scannet-labels",
+        "--label-map",
+        str(synthetic.labels),
+    ]
     assert main(missing) == 2
     assert "scan folder(s) missing, e.g. scene0002_00" in capsys.readouterr().err
 
@@ -168,9 +222,25 @@ def test_a_bad_scan_among_good_ones_is_a_recorded_skip_and_the_build_completes(s
     shutil.copytree(synthetic.exported, scans / EXPORTED_SCENE)
     splits.mkdir()
     (splits / "scannetv2_train.txt").write_text(f"{SENS_SCENE}\n{EXPORTED_SCENE}\n")
-    args = ["--out", str(tmp_path / "out"), "--quiet", "--scans-root", str(scans), "--splits-dir", str(splits),
-            "--splits", "train", "--masks", "scannet-labels", "--label-map", str(synthetic.labels),
-            "--stride", "2", "--size", "48x36"]
+    args = [
+        "--out",
+        str(tmp_path / "out"),
+        "--quiet",
+        "--scans-root",
+        str(scans),
+        "--splits-dir",
+        str(splits),
+        "--splits",
+        "train",
+        "--masks",
+        "scannet-labels",
+        "--label-map",
+        str(synthetic.labels),
+        "--stride",
+        "2",
+        "--size",
+        "48x36",
+    ]
     assert main(args + ["--no-skip-bad-scenes"]) == 2
     assert f"{SENS_SCENE}.sens: truncated .sens file" in capsys.readouterr().err
     assert main(args) == 0

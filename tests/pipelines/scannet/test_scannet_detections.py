@@ -1,5 +1,6 @@
 """Detections in detectron2's COCO results format: frame mapping, category mapping, RLE checks and
 the errors for files that do not fit the scans."""
+
 from __future__ import annotations
 
 import json
@@ -23,13 +24,16 @@ SCENE = "scene0001_00"
 SPEC_MAPPING = tuple((int(c["coco_id"]), int(c["id"])) for c in load_dataset_spec("scannet")["categories"])
 
 
-@pytest.mark.parametrize("name, expected", [
-    ("scene0000_00/color/123.jpg", ("scene0000_00", 123)),
-    ("/data/scannet/scene0706_01/exported/color/0.png", ("scene0706_01", 0)),
-    ("scene0000_00\\color\\7.JPG", ("scene0000_00", 7)),
-    ("scene0000_00_123.jpg", None),
-    ("scene0000_00/color/frame-1.jpg", None),
-])
+@pytest.mark.parametrize(
+    "name, expected",
+    [
+        ("scene0000_00/color/123.jpg", ("scene0000_00", 123)),
+        ("/data/scannet/scene0706_01/exported/color/0.png", ("scene0706_01", 0)),
+        ("scene0000_00\\color\\7.JPG", ("scene0000_00", 7)),
+        ("scene0000_00_123.jpg", None),
+        ("scene0000_00/color/frame-1.jpg", None),
+    ],
+)
 def test_frame_of_file_name(name, expected):
     assert frame_of_file_name(name) == expected
 
@@ -64,8 +68,14 @@ def _one_detection(tmp_path, synthetic, *, image=None, detection=None, contiguou
     rle = mask_utils.encode(np.asfortranarray(mask))
     tmp_path.mkdir(exist_ok=True)
     image = {"id": 7, "file_name": f"{SCENE}/color/3.jpg", "width": 96, "height": 72, **(image or {})}
-    det = {"image_id": 7, "category_id": 62, "score": 0.9, "bbox": [30, 10, 20, 10],
-           "segmentation": {"size": [72, 96], "counts": rle["counts"].decode()}, **(detection or {})}
+    det = {
+        "image_id": 7,
+        "category_id": 62,
+        "score": 0.9,
+        "bbox": [30, 10, 20, 10],
+        "segmentation": {"size": [72, 96], "counts": rle["counts"].decode()},
+        **(detection or {}),
+    }
     (tmp_path / "images.json").write_text(json.dumps([image]))
     (tmp_path / "results.json").write_text(json.dumps([det]))
     split_detections([tmp_path / "results.json"], tmp_path / "images.json", {SCENE}, tmp_path / "cache")
@@ -82,33 +92,45 @@ def test_hand_made_detection_is_read(tmp_path, synthetic):
     assert _one_detection(tmp_path / "p", synthetic, detection={"category_id": 1}) == []  # person: not a category
 
 
-@pytest.mark.parametrize("image, detection, message", [
-    ({"width": 1296, "height": 968}, {"segmentation": {"size": [968, 1296], "counts": "X5"}},
-     r"results\.json: detections for scene0001_00 are for 1296x968 images, but .*scene0001_00\.sens has 96x72"),
-    ({}, {"segmentation": {"size": [72, 95], "counts": "X5"}}, r"results\.json: image_id 7: malformed mask: .*differs"),
-    ({}, {"segmentation": {"size": [72, 96], "counts": "ab!!"}}, r"results\.json: image_id 7: malformed mask"),
-    ({}, {"segmentation": {"size": [72, 96], "counts": "X5"}}, r"image_id 7: malformed mask: RLE runs cover"),
-    ({}, {"segmentation": [[1.0, 2.0, 3.0, 4.0, 5.0, 6.0]]}, r"image_id 7: malformed mask: .*polygons"),
-    ({}, {"category_id": 0}, r"category_id 0 is not a COCO category id \(0-based class indices\?"),
-    ({}, {"score": None}, r"image_id 7: score None"),
-    ({"file_name": f"{SCENE}/color/999.jpg"}, {}, r"names frame 999 of scene0001_00, which .*sens does not have"),
-])
+@pytest.mark.parametrize(
+    "image, detection, message",
+    [
+        (
+            {"width": 1296, "height": 968},
+            {"segmentation": {"size": [968, 1296], "counts": "X5"}},
+            r"results\.json: detections for scene0001_00 are for 1296x968 images, but .*scene0001_00\.sens has 96x72",
+        ),
+        (
+            {},
+            {"segmentation": {"size": [72, 95], "counts": "X5"}},
+            r"results\.json: image_id 7: malformed mask: .*differs",
+        ),
+        ({}, {"segmentation": {"size": [72, 96], "counts": "ab!!"}}, r"results\.json: image_id 7: malformed mask"),
+        ({}, {"segmentation": {"size": [72, 96], "counts": "X5"}}, r"image_id 7: malformed mask: RLE runs cover"),
+        ({}, {"segmentation": [[1.0, 2.0, 3.0, 4.0, 5.0, 6.0]]}, r"image_id 7: malformed mask: .*polygons"),
+        ({}, {"category_id": 0}, r"category_id 0 is not a COCO category id \(0-based class indices\?"),
+        ({}, {"score": None}, r"image_id 7: score None"),
+        ({"file_name": f"{SCENE}/color/999.jpg"}, {}, r"names frame 999 of scene0001_00, which .*sens does not have"),
+    ],
+)
 def test_bad_detections_are_named(tmp_path, synthetic, image, detection, message):
     with pytest.raises(UslError, match=message):
         _one_detection(tmp_path, synthetic, image=image, detection=detection)
 
 
 def test_detection_of_unknown_image_is_refused(tmp_path, synthetic):
-    (tmp_path / "images.json").write_text(json.dumps([{"id": 1, "file_name": f"{SCENE}/color/0.jpg",
-                                                       "width": 96, "height": 72}]))
+    (tmp_path / "images.json").write_text(
+        json.dumps([{"id": 1, "file_name": f"{SCENE}/color/0.jpg", "width": 96, "height": 72}])
+    )
     (tmp_path / "results.json").write_text(json.dumps([{"image_id": 2, "category_id": 62, "score": 1.0}]))
     with pytest.raises(UslError, match=r"results\.json: detection 0 refers to image_id 2, which .*images\.json"):
         split_detections([tmp_path / "results.json"], tmp_path / "images.json", {SCENE}, tmp_path / "cache")
 
 
 def test_images_without_frame_names_are_refused(tmp_path):
-    (tmp_path / "images.json").write_text(json.dumps({"images": [{"id": 1, "file_name": "img_0001.jpg",
-                                                                  "width": 9, "height": 9}]}))
+    (tmp_path / "images.json").write_text(
+        json.dumps({"images": [{"id": 1, "file_name": "img_0001.jpg", "width": 9, "height": 9}]})
+    )
     with pytest.raises(UslError, match=r"images\.json: image 1: cannot tell scan and frame"):
         split_detections([], tmp_path / "images.json", {SCENE}, tmp_path / "cache")
 

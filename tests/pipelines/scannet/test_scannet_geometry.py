@@ -1,5 +1,6 @@
 """Output grid (K, depth registration, mask resampling) and depth+pose mask warping, against
 ScanNet's published calibration and the synthetic scene's ray-cast truth."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -27,8 +28,13 @@ def encode(mask: np.ndarray) -> dict:
 def test_scannet_depth_intrinsics_are_the_colour_ones_resized_with_half_pixel_centres():
     """ScanNet's depth K equals its colour K scaled to 640x480 only under the +0.5 convention, so
     the 640x480 output grid is the depth camera itself and depth registration is the identity."""
-    cal = Calibration((1296, 968), (640, 480), half_pixel_intrinsics(np.array(SCANNET_COLOR), "c"),
-                      half_pixel_intrinsics(np.array(SCANNET_DEPTH), "d"), 1000.0)
+    cal = Calibration(
+        (1296, 968),
+        (640, 480),
+        half_pixel_intrinsics(np.array(SCANNET_COLOR), "c"),
+        half_pixel_intrinsics(np.array(SCANNET_DEPTH), "d"),
+        1000.0,
+    )
     grid = OutputGrid.for_scan(cal, (640, 480))
     np.testing.assert_allclose(grid.K, cal.K_depth, atol=5e-3)
     np.testing.assert_array_equal(grid.depth_index, np.arange(640 * 480))
@@ -93,8 +99,9 @@ def test_warping_keeps_tracks_whole_at_large_stride(synthetic):
         for warp in ("on", "off"):
             options = ConvertOptions(stride=20, size=None, warp=warp, tracker=TrackerConfig(min_track_frames=2))
             tracked = track_scan(scan, labels.open_scan(scan), grid, options)
-            observations = [(f, t.track_id, d.source_id)
-                            for t in tracked.tracks for f, d in zip(t.frames, t.detections)]
+            observations = [
+                (f, t.track_id, d.source_id) for t in tracked.tracks for f, d in zip(t.frames, t.detections)
+            ]
             quality = tracking_quality(observations)
             assert quality.purity == 1.0
             switches[warp] = quality.id_switches

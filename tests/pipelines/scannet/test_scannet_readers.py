@@ -1,5 +1,6 @@
 """The .sens and exported-folder readers recover exactly what the fixture writers stored, and refuse
 broken input with an error naming the file."""
+
 from __future__ import annotations
 
 import struct
@@ -83,6 +84,7 @@ def test_encoded_image_size_reads_headers(size):
 
 
 # -- broken input ---------------------------------------------------------------------------------
+
 
 @pytest.fixture(scope="module")
 def tiny():

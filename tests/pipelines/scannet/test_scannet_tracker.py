@@ -1,5 +1,6 @@
 """The IoU tracker on synthetic 2D detections with known identities: crossing objects of one category,
 noise, misses, spurious blips and a short-lived object."""
+
 from __future__ import annotations
 
 import numpy as np

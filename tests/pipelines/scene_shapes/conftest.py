@@ -1,4 +1,5 @@
 """A tiny Scene-Shapes dataset built once per session through the real CLI."""
+
 import sys
 from pathlib import Path
 
@@ -8,8 +9,23 @@ sys.path.insert(0, str(Path(__file__).parent))
 
 from pipelines.scene_shapes.cli import main  # noqa: E402
 
-TINY = ["--num-scenes", "10", "--num-models", "30", "--resolution", "96", "--azimuths", "3", "--heights", "2",
-        "--scenes-per-shard", "4", "--seed", "5", "--quiet"]
+TINY = [
+    "--num-scenes",
+    "10",
+    "--num-models",
+    "30",
+    "--resolution",
+    "96",
+    "--azimuths",
+    "3",
+    "--heights",
+    "2",
+    "--scenes-per-shard",
+    "4",
+    "--seed",
+    "5",
+    "--quiet",
+]
 
 
 @pytest.fixture(scope="session")

@@ -1,6 +1,7 @@
 """Independent oracles for built Scene-Shapes records: re-render one stored mesh alone with pyrender
 from the stored K and pose, back-project stored depth with numpy, and measure distances to a mesh
 with trimesh's exact point-triangle routine (no builder code involved)."""
+
 import os
 
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
@@ -24,8 +25,10 @@ def render_depth_alone(vertices, faces, K, cam_to_world, height, width):
         _RENDERERS[key] = pyrender.OffscreenRenderer(width, height)
     scene = pyrender.Scene()
     node = scene.add(pyrender.Mesh.from_trimesh(trimesh.Trimesh(vertices, faces, process=False)))
-    scene.add(pyrender.IntrinsicsCamera(fx=K[0, 0], fy=K[1, 1], cx=K[0, 2], cy=K[1, 2], znear=0.01, zfar=100.0),
-              pose=cam_to_world @ GL_FROM_CV)
+    scene.add(
+        pyrender.IntrinsicsCamera(fx=K[0, 0], fy=K[1, 1], cx=K[0, 2], cy=K[1, 2], znear=0.01, zfar=100.0),
+        pose=cam_to_world @ GL_FROM_CV,
+    )
     _, depth = _RENDERERS[key].render(scene, flags=pyrender.RenderFlags.SEG, seg_node_map={node: [255, 255, 255]})
     return depth
 
@@ -43,10 +46,10 @@ def distance_to_mesh(points, vertices, faces):
     triangles = vertices[faces]
     best = np.full(len(points), np.inf)
     for start in range(0, len(points), 64):
-        chunk = points[start:start + 64]
+        chunk = points[start : start + 64]
         pairs = np.repeat(chunk, len(triangles), axis=0)
         closest = trimesh.triangles.closest_point(np.tile(triangles, (len(chunk), 1, 1)), pairs)
-        best[start:start + 64] = np.linalg.norm(closest - pairs, axis=1).reshape(len(chunk), -1).min(axis=1)
+        best[start : start + 64] = np.linalg.norm(closest - pairs, axis=1).reshape(len(chunk), -1).min(axis=1)
     return best
 
 

@@ -3,6 +3,7 @@
 Oracles: trimesh's watertightness/volume, and a vertical ray cast written here (a point-in-
 triangle test in the XZ plane) for seat and table-top heights.
 """
+
 import numpy as np
 import pytest
 import trimesh
@@ -23,8 +24,13 @@ EXTENTS = {
     "sofa": ([1.00, 0.65, 0.75], [2.20, 1.10, 1.70]),
     "table": ([0.55, 0.37, 0.50], [1.65, 0.80, 1.20]),
 }
-SEAT_HEIGHT = {"four_legged": (0.42, 0.50), "swivel": (0.42, 0.50), "armchair": (0.40, 0.47),
-               "stool_with_back": (0.60, 0.78), "cantilever": (0.42, 0.50)}
+SEAT_HEIGHT = {
+    "four_legged": (0.42, 0.50),
+    "swivel": (0.42, 0.50),
+    "armchair": (0.40, 0.47),
+    "stool_with_back": (0.60, 0.78),
+    "cantilever": (0.42, 0.50),
+}
 TABLE_HEIGHT = {"coffee": (0.38, 0.48)}
 DINING_HEIGHT = (0.70, 0.80)
 
@@ -90,8 +96,12 @@ def test_sofa_seats_are_sofa_height():
     """The typical top surface over the middle of a sofa is its seat (cushion gaps and backs are rare)."""
     for family in FAMILIES["sofa"]:
         model = generate_procedural(procedural_source_id("sofa", family, 0))
-        tops = [hits.max() for x in np.linspace(-0.3, 0.3, 7) for z in np.linspace(-0.1, 0.3, 5)
-                if len(hits := vertical_hits(model, x, z))]
+        tops = [
+            hits.max()
+            for x in np.linspace(-0.3, 0.3, 7)
+            for z in np.linspace(-0.1, 0.3, 5)
+            if len(hits := vertical_hits(model, x, z))
+        ]
         assert 0.36 <= np.median(tops) <= 0.50, (family, np.median(tops))
 
 
@@ -111,24 +121,41 @@ def test_same_id_same_mesh_and_different_ids_differ():
 def test_families_are_recognisable_from_coarse_shape():
     """Leave-one-out nearest-centroid on coarse shape (extents, fill of the bounding box, log vertex
     count, a 3x3 top-height profile, where the vertices lie in height) must name each model's family far above chance (1/5 or 1/6)."""
+
     def descriptor(model):
         ext = model.extents
         volume = trimesh.Trimesh(model.vertices, model.faces, process=False).volume
-        profile = [max(vertical_hits(model, fx * ext[0], fz * ext[2]), default=0.0) / ext[1]
-                   for fx in (-0.45, 0.0, 0.45) for fz in (-0.35, 0.0, 0.3)]
+        profile = [
+            max(vertical_hits(model, fx * ext[0], fz * ext[2]), default=0.0) / ext[1]
+            for fx in (-0.45, 0.0, 0.45)
+            for fz in (-0.35, 0.0, 0.3)
+        ]
         heights = np.histogram(model.vertices[:, 1] / ext[1], bins=4, range=(0, 1))[0] / len(model.vertices)
-        return np.array([ext[0] / ext[1], ext[2] / ext[1], ext[1], volume / np.prod(ext), np.log(len(model.vertices)),
-                         *profile, *heights])
+        return np.array(
+            [
+                ext[0] / ext[1],
+                ext[2] / ext[1],
+                ext[1],
+                volume / np.prod(ext),
+                np.log(len(model.vertices)),
+                *profile,
+                *heights,
+            ]
+        )
 
     for category in CATEGORIES:
         families = list(FAMILIES[category])
-        feats = {f: np.array([descriptor(generate_procedural(procedural_source_id(category, f, i)))
-                              for i in range(6)]) for f in families}
+        feats = {
+            f: np.array([descriptor(generate_procedural(procedural_source_id(category, f, i))) for i in range(6)])
+            for f in families
+        }
         scale = np.concatenate(list(feats.values())).std(axis=0) + 0.02  # constant features must not dominate
         correct = total = 0
         for f in families:
             for i in range(len(feats[f])):
-                centroids = {g: np.delete(feats[g], i, axis=0).mean(0) if g == f else feats[g].mean(0) for g in families}
+                centroids = {
+                    g: np.delete(feats[g], i, axis=0).mean(0) if g == f else feats[g].mean(0) for g in families
+                }
                 guess = min(families, key=lambda g: np.linalg.norm((feats[f][i] - centroids[g]) / scale))
                 correct += guess == f
                 total += 1

@@ -1,4 +1,5 @@
 """Scene layout, planning, the camera convention of the renderer, invisible objects, EGL errors."""
+
 import sys
 
 import numpy as np
@@ -67,8 +68,9 @@ def test_plans_depend_on_the_seed_and_not_on_shard_size():
         return [u for plan in plan_shards(refs, PlanConfig(20, seed, FRACTIONS, per_shard), config) for u in plan.units]
 
     a, b, c = units(1, 3), units(1, 7), units(2, 3)
-    assert [(u.scene_id, u.appearance_seed, u.layout.objects) for u in a] == \
-           [(u.scene_id, u.appearance_seed, u.layout.objects) for u in b]
+    assert [(u.scene_id, u.appearance_seed, u.layout.objects) for u in a] == [
+        (u.scene_id, u.appearance_seed, u.layout.objects) for u in b
+    ]
     assert [u.layout.objects for u in a] != [u.layout.objects for u in c]
     train_models = {o.model.source_id for u in a if u.scene_id.startswith("train") for o in u.layout.objects}
     val_models = {o.model.source_id for u in a if u.scene_id.startswith("val") for o in u.layout.objects}
@@ -88,8 +90,14 @@ def test_mask_matches_the_analytic_projection_of_a_convex_box():
     layout = sample_layout(np.random.default_rng(3), {"table": procedural_refs(3)[2:]}, rig, placement)
     model = box_model([0.6, 0.5, 0.3])
     transform = ObjectPlacement(1, layout.objects[0].model, 0.7, 0.1, 1.7).world_from_object()
-    views = render.render_scene([render.PlacedModel(model, transform)], layout.K, list(layout.cam_to_world),
-                                rig.resolution, "floor", np.random.default_rng(0))
+    views = render.render_scene(
+        [render.PlacedModel(model, transform)],
+        layout.K,
+        list(layout.cam_to_world),
+        rig.resolution,
+        "floor",
+        np.random.default_rng(0),
+    )
     world = model.vertices @ transform[:3, :3].T + transform[:3, 3]
     for view, pose in zip(views, layout.cam_to_world):
         cam = (world - pose[:3, 3]) @ pose[:3, :3]
@@ -137,12 +145,15 @@ def test_failing_context_gives_the_install_hint(monkeypatch):
         render.check_offscreen_rendering(16)
 
 
-@pytest.mark.parametrize("argv,message", [
-    (["--views", "7", "--heights", "3"], "--views 7 is not a positive multiple of --heights 3"),
-    (["--category-map", "map.yaml"], "--category-map needs --mesh-root"),
-    (["--z-range", "1.9", "1.5"], "need ascending ranges"),
-    (["--num-models", "2"], "fewer than the 3 categories"),
-])
+@pytest.mark.parametrize(
+    "argv,message",
+    [
+        (["--views", "7", "--heights", "3"], "--views 7 is not a positive multiple of --heights 3"),
+        (["--category-map", "map.yaml"], "--category-map needs --mesh-root"),
+        (["--z-range", "1.9", "1.5"], "need ascending ranges"),
+        (["--num-models", "2"], "fewer than the 3 categories"),
+    ],
+)
 def test_bad_arguments_are_one_line_errors(tmp_path, capsys, argv, message):
     from pipelines.scene_shapes.cli import main
 

@@ -1,4 +1,5 @@
 """--mesh-root: a ShapeNet-like tree of OBJ/PLY/OFF files written by trimesh, category maps, bad files."""
+
 import numpy as np
 import pytest
 import trimesh
@@ -64,8 +65,9 @@ def test_discovers_models_with_relative_source_ids(tree):
 def test_normalises_scale_and_up_axis(tmp_path, z_up):
     root = tmp_path / "meshes"
     write_tree(root, z_up=z_up)
-    category_map = load_category_map(write_map(tmp_path / "map.json", '{"03001627": "chair", "04256520": "sofa", '
-                                                                       '"04379243": "table"}'))
+    category_map = load_category_map(
+        write_map(tmp_path / "map.json", '{"03001627": "chair", "04256520": "sofa", "04379243": "table"}')
+    )
     refs, _ = discover_models(root, category_map)
     normalisation = MeshNormalisation(up_axis="+z" if z_up else "+y")
     for ref in refs:
@@ -73,7 +75,7 @@ def test_normalises_scale_and_up_axis(tmp_path, z_up):
         low, high = model.vertices.min(axis=0), model.vertices.max(axis=0)
         assert np.linalg.norm(high - low) == pytest.approx(DEFAULT_DIAGONAL_M[ref.category])
         assert low[1] == pytest.approx(0.0, abs=1e-9) and low[0] + high[0] == pytest.approx(0.0, abs=1e-9)
-        index = int(ref.source_id.split("/")[1][len("model"):].split(".")[0])
+        index = int(ref.source_id.split("/")[1][len("model") :].split(".")[0])
         original = generate_procedural(procedural_source_id(ref.category, FAMILY[ref.category], index))
         ratio = original.extents / np.linalg.norm(original.extents)
         np.testing.assert_allclose(model.extents / np.linalg.norm(model.extents), ratio, atol=1e-6)  # upright again
@@ -85,8 +87,9 @@ def test_category_map_errors(tree, tmp_path):
         load_category_map(write_map(tmp_path / "bad.yaml", "03001627: bed\n"))
     with pytest.raises(UslError, match="do not exist"):
         discover_models(root, load_category_map(write_map(tmp_path / "missing.yaml", "99999999: chair\n")))
-    nested = load_category_map(write_map(tmp_path / "nested.yaml", "categories: {03001627: chair}\n"
-                                                                   "target_diagonal_m: {chair: 0.9}\n"))
+    nested = load_category_map(
+        write_map(tmp_path / "nested.yaml", "categories: {03001627: chair}\ntarget_diagonal_m: {chair: 0.9}\n")
+    )
     assert nested.folders == {"03001627": "chair"} and nested.diagonals["chair"] == 0.9
 
 

@@ -1,5 +1,6 @@
 """Built records against independent oracles: masks and depth vs. each stored mesh re-rendered
 alone from the stored camera, back-projected depth vs. the mesh surface, splits, determinism."""
+
 import json
 
 import numpy as np
@@ -127,13 +128,31 @@ def test_splits_are_disjoint_in_models_and_scenes(tiny_dataset):
 
 def _shard_checksums(root):
     manifest = load_manifest(root)
-    return {(split, shard["index"]): (shard["frames"]["sha256"], (shard["objects"] or {}).get("sha256"))
-            for split, entry in manifest["splits"].items() for shard in entry["shards"]}
+    return {
+        (split, shard["index"]): (shard["frames"]["sha256"], (shard["objects"] or {}).get("sha256"))
+        for split, entry in manifest["splits"].items()
+        for shard in entry["shards"]
+    }
 
 
 def test_output_is_identical_for_one_and_two_workers(tmp_path):
-    args = ["--num-scenes", "6", "--num-models", "15", "--resolution", "48", "--azimuths", "2", "--heights", "1",
-            "--scenes-per-shard", "2", "--seed", "11", "--quiet"]
+    args = [
+        "--num-scenes",
+        "6",
+        "--num-models",
+        "15",
+        "--resolution",
+        "48",
+        "--azimuths",
+        "2",
+        "--heights",
+        "1",
+        "--scenes-per-shard",
+        "2",
+        "--seed",
+        "11",
+        "--quiet",
+    ]
     assert main(["--out", str(tmp_path / "w1"), "--workers", "1", *args]) == 0
     assert main(["--out", str(tmp_path / "w2"), "--workers", "2", *args]) == 0
     assert _shard_checksums(tmp_path / "w1") == _shard_checksums(tmp_path / "w2")

@@ -1,4 +1,5 @@
 """Backbones: torchvision-compatible ResNets and a Feature Pyramid Network."""
+
 from .build import (
     BackboneConfig,
     FPNConfig,

@@ -1,4 +1,5 @@
 """Backbone configuration, the plain ResNet and ResNet-FPN backbones, and the registry-based builder."""
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field

@@ -1,4 +1,5 @@
 """Feature Pyramid Network (Lin et al. 2017) over named bottom-up feature maps."""
+
 from __future__ import annotations
 
 import math
@@ -32,9 +33,7 @@ class FPN(nn.Module):
         if levels != list(range(levels[0], levels[0] + len(levels))):
             raise ValueError(f"FPN inputs must have consecutive power-of-two strides, got {dict(in_strides)}")
         self.lateral_convs = nn.ModuleList(nn.Conv2d(in_channels[n], out_channels, 1) for n in self.in_features)
-        self.output_convs = nn.ModuleList(
-            nn.Conv2d(out_channels, out_channels, 3, padding=1) for _ in self.in_features
-        )
+        self.output_convs = nn.ModuleList(nn.Conv2d(out_channels, out_channels, 3, padding=1) for _ in self.in_features)
         self.add_p6 = add_p6
         out_levels = levels + ([levels[-1] + 1] if add_p6 else [])
         self.out_strides = {f"p{level}": 2**level for level in out_levels}

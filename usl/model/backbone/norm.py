@@ -1,4 +1,5 @@
 """Normalisation layers for the backbone: BatchNorm, or BatchNorm frozen to an affine map."""
+
 from __future__ import annotations
 
 import torch

@@ -1,4 +1,5 @@
 """Name -> builder registries, so configs can pick components by name (detectron2's habit)."""
+
 from __future__ import annotations
 
 from typing import Callable, Optional, TypeVar

@@ -4,6 +4,7 @@ Same names mean a torchvision ``resnet50-*.pth`` state dict maps one to one (see
 :mod:`usl.model.pretrained`). ``base_channels`` scales every stage's width (64 for
 the real networks; e.g. 16 for a tiny CPU test network); names do not change.
 """
+
 from __future__ import annotations
 
 from typing import Optional, Type, Union
@@ -32,7 +33,13 @@ class BasicBlock(nn.Module):
     expansion = 1
 
     def __init__(
-        self, inplanes: int, planes: int, stride: int, downsample: Optional[nn.Module], norm: str, stride_in_1x1: bool = False
+        self,
+        inplanes: int,
+        planes: int,
+        stride: int,
+        downsample: Optional[nn.Module],
+        norm: str,
+        stride_in_1x1: bool = False,
     ):
         super().__init__()  # stride_in_1x1 only matters for bottlenecks; a basic block has no 1x1 conv
         self.conv1 = conv3x3(inplanes, planes, stride)

@@ -1,4 +1,5 @@
 """Mask R-CNN (RPN, RoI box and mask heads) on top of :mod:`usl.model.backbone`."""
+
 from .box_head import FastRCNNFCHead, FastRCNNOutputLayers
 from .config import AnchorConfig, BoxHeadConfig, DetectorConfig, MaskHeadConfig, ROIHeadsConfig, RPNConfig
 from .mask_head import MaskRCNNConvUpsampleHead, mask_rcnn_loss, mask_targets, paste_masks_in_image

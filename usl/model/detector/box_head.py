@@ -1,4 +1,5 @@
 """Fast R-CNN box branch: 2 FC layers, class scores and class-specific box deltas."""
+
 from __future__ import annotations
 
 from typing import Sequence

@@ -1,4 +1,5 @@
 """Detector configuration as nested dataclasses (defaults: Mask R-CNN R50-FPN, detectron2 recipe; a plain-R50 preset)."""
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field

@@ -1,4 +1,5 @@
 """Mask R-CNN mask branch: conv head, training targets/loss, and pasting masks into images."""
+
 from __future__ import annotations
 
 import torch
@@ -65,7 +66,7 @@ def paste_masks_in_image(
 ) -> Tensor:
     """Resample box-relative masks (R, M, M) into full images (R, H, W).
 
-    Pixel ``(x, y)`` has its centre at ``(x + 0.5, y + 0.5)`` (DESIGN.md §2); the mask's
+    Pixel ``(x, y)`` has its centre at ``(x + 0.5, y + 0.5)`` (docs/design.md §2); the mask's
     M x M cells tile the box exactly, matching how :func:`mask_targets` cut them.
     Returns probabilities, or bool masks (``>= threshold``) when a threshold is given.
     """
@@ -78,9 +79,7 @@ def paste_masks_in_image(
         x0, y0, x1, y1 = part_boxes.unbind(dim=1)
         grid_x = (xs[None] - x0[:, None]) / (x1 - x0).clamp(min=1e-6)[:, None] * 2 - 1
         grid_y = (ys[None] - y0[:, None]) / (y1 - y0).clamp(min=1e-6)[:, None] * 2 - 1
-        grid = torch.stack(
-            [grid_x[:, None, :].expand(-1, height, -1), grid_y[:, :, None].expand(-1, -1, width)], dim=3
-        )
+        grid = torch.stack([grid_x[:, None, :].expand(-1, height, -1), grid_y[:, :, None].expand(-1, -1, width)], dim=3)
         image = F.grid_sample(part_masks[:, None].float(), grid, mode="bilinear", align_corners=False)[:, 0]
         pasted.append(image if threshold is None else image >= threshold)
     if not pasted:

@@ -1,4 +1,5 @@
 """Mask R-CNN: backbone -> RPN -> RoI heads, with dict-based inputs and outputs."""
+
 from __future__ import annotations
 
 from typing import Optional, Sequence, Union

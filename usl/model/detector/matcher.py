@@ -1,4 +1,5 @@
 """Assign predictions (anchors, proposals) to ground truth by IoU, and sample a balanced subset."""
+
 from __future__ import annotations
 
 from typing import Sequence

@@ -1,4 +1,5 @@
 """RoIAlign over an FPN: each box is pooled from the level that matches its size."""
+
 from __future__ import annotations
 
 import math

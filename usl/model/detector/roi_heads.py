@@ -5,6 +5,7 @@ Subclass :class:`StandardROIHeads` (and register it in ``ROI_HEADS``) to add bra
 any boxes, and in training :meth:`label_and_sample_proposals` records which ground
 truth each sampled proposal matched (``gt_index``).
 """
+
 from __future__ import annotations
 
 from typing import Mapping, Optional

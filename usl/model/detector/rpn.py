@@ -1,4 +1,5 @@
 """Region Proposal Network (Ren et al. 2015) over FPN levels, with its training losses."""
+
 from __future__ import annotations
 
 from typing import Mapping, Optional

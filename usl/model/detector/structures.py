@@ -1,4 +1,5 @@
 """Containers passed between detector stages: a padded image batch and per-image instances."""
+
 from __future__ import annotations
 
 from dataclasses import dataclass

@@ -1,4 +1,5 @@
 """USL's heads on top of Mask R-CNN: layout (z, rho) and shape (ico-sphere refinement)."""
+
 from .graph_conv import GraphConv
 from .layout import LayoutHead, LayoutPrediction
 from .shape import RefinementStage, ShapeHead, ShapePrediction

@@ -1,4 +1,5 @@
 """Graph convolution on meshes that all share one topology (the identical ico-sphere per object)."""
+
 from __future__ import annotations
 
 import math

@@ -1,5 +1,6 @@
 """Layout head (paper Sec. 3.2): per-object depth z and depth extent rho from RoI features
 (and, as an option, from the 2D box's camera rays)."""
+
 from __future__ import annotations
 
 from dataclasses import dataclass

@@ -18,6 +18,7 @@ shape decoder); its pre-tanh offsets join the regularizer's like any stage's. Wi
 the MLP predicts coefficients of the sphere's smoothest fields (``laplacian_eigenbasis``), and the
 offsets are their combination, so the stage bends the sphere smoothly.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -100,7 +101,9 @@ class ShapeHead(nn.Module):
     ``num_classes`` sizes the per-category templates (``cfg.category_templates``); ``roi_dim`` is the
     size of one object's flattened RoI features, the global stage's input (``cfg.global_stage``)."""
 
-    def __init__(self, input_shape: Mapping[str, ShapeSpec], cfg: ShapeHeadConfig, num_classes: int = 1, roi_dim: int = 0):
+    def __init__(
+        self, input_shape: Mapping[str, ShapeSpec], cfg: ShapeHeadConfig, num_classes: int = 1, roi_dim: int = 0
+    ):
         super().__init__()
         missing = [name for name in cfg.features if name not in input_shape]
         if missing:
@@ -115,14 +118,17 @@ class ShapeHead(nn.Module):
         self.register_buffer("edges", unique_edges(faces, verts.shape[0]), persistent=False)
         self.poolers = (
             nn.ModuleList(
-                single_level_pooler(name, stride, cfg.vertalign_resolution) for name, stride in zip(cfg.features, self.strides)
+                single_level_pooler(name, stride, cfg.vertalign_resolution)
+                for name, stride in zip(cfg.features, self.strides)
             )
             if cfg.sampler == "vertalign"
             else None
         )
         feature_dim = sum(input_shape[name].channels for name in cfg.features)
         self.global_mlp = (
-            global_deformation_mlp(roi_dim, cfg.global_stage, cfg.global_basis or len(verts)) if cfg.global_stage else None
+            global_deformation_mlp(roi_dim, cfg.global_stage, cfg.global_basis or len(verts))
+            if cfg.global_stage
+            else None
         )
         # persistent: a repeated eigenvalue's eigenvectors differ between eigensolvers, so a
         # checkpoint carries the basis its coefficients were learnt in
@@ -141,14 +147,19 @@ class ShapeHead(nn.Module):
         )
 
     def forward(
-        self, features: Mapping[str, Tensor], boxes: list[Tensor], labels: Tensor | None = None, roi: Tensor | None = None
+        self,
+        features: Mapping[str, Tensor],
+        boxes: list[Tensor],
+        labels: Tensor | None = None,
+        roi: Tensor | None = None,
     ) -> ShapePrediction:
         """Deform one sphere per box; ``boxes`` is a list over images of (N_i, 4) input-pixel boxes,
         ``labels`` the (N,) flat category indices (needed with category templates), ``roi`` the (N, ...)
         RoI features of the boxes (needed with the global stage)."""
         flat_boxes = torch.cat(boxes).float()
         image_index = torch.repeat_interleave(
-            torch.arange(len(boxes), device=flat_boxes.device), torch.tensor([len(b) for b in boxes], device=flat_boxes.device)
+            torch.arange(len(boxes), device=flat_boxes.device),
+            torch.tensor([len(b) for b in boxes], device=flat_boxes.device),
         )
         verts = self.sphere_verts.expand(len(flat_boxes), -1, -1)
         if self.templates is not None:

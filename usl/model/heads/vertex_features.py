@@ -5,6 +5,7 @@ Both take mesh vertices in the normalized cube. The frustum homography maps a cu
 for ANY z, rho and K (``usl.geometry.frustum``: x and y run linearly across the 2D box), so the
 projection of the current mesh onto the input image needs only the boxes.
 """
+
 from __future__ import annotations
 
 from typing import Sequence
@@ -58,8 +59,11 @@ def roimap_features(
         extent = torch.tensor([width * stride, height * stride], dtype=uv.dtype, device=uv.device)
         samples = [
             # float32 even under autocast: bf16 would misplace samples by cells
-            F.grid_sample(feature_map[image : image + 1].float(), (2.0 * block / extent - 1.0).reshape(1, 1, -1, 2),
-                          align_corners=False)[0, :, 0]
+            F.grid_sample(
+                feature_map[image : image + 1].float(),
+                (2.0 * block / extent - 1.0).reshape(1, 1, -1, 2),
+                align_corners=False,
+            )[0, :, 0]
             for image, block in blocks
         ]
         per_map.append(samples[0] if len(samples) == 1 else torch.cat(samples, dim=1))  # (C_k, N * V)

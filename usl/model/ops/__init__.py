@@ -1,4 +1,5 @@
 """Detection operators in pure torch: RoIAlign, NMS, box maths and anchors."""
+
 from .anchors import AnchorGenerator, cell_anchors
 from .autocast import autocast_off
 from .boxes import (

@@ -4,6 +4,7 @@ Layout (detectron2's): per level, anchors are ordered location-major, i.e. index
 ``(y * W + x) * A + a`` where ``a`` runs over (size, aspect ratio) pairs, sizes outer.
 The RPN head flattens its predictions in the same order.
 """
+
 from __future__ import annotations
 
 import math

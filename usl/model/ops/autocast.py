@@ -1,4 +1,5 @@
 """Regions that must run in float32 whatever autocast the caller set (geometry, RoIAlign's pooling)."""
+
 from __future__ import annotations
 
 import contextlib

@@ -1,8 +1,9 @@
 """Axis-aligned box maths on ``(N, 4)`` tensors in ``[x0, y0, x1, y1]`` form.
 
-Boxes live in the continuous pixel frame of DESIGN.md §2 (the image spans
+Boxes live in the continuous pixel frame of docs/design.md §2 (the image spans
 ``[0, W] x [0, H]``), so areas and IoUs are computed without the legacy "+1".
 """
+
 from __future__ import annotations
 
 import math

@@ -17,6 +17,7 @@
 Every path compares IoUs with the threshold as a real number (as torchvision does) and ranks
 equal scores by index.
 """
+
 from __future__ import annotations
 
 import math

@@ -18,6 +18,7 @@ no Python loop over RoIs. The backward pass is written out (the transposed matmu
 one ``index_add_`` into a single gradient buffer): autograd through the gathers would
 allocate a full-size input gradient per chunk.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -160,9 +161,7 @@ def _window_bound(roi_size: np.ndarray, size: int) -> np.ndarray:
     return np.clip(np.ceil(np.maximum(roi_size, 0.0)) + 2, 1, size)
 
 
-def _axis_samples(
-    start: Tensor, roi_size: Tensor, bins: int, size: int, grid: Tensor, max_grid: int
-) -> _AxisSamples:
+def _axis_samples(start: Tensor, roi_size: Tensor, bins: int, size: int, grid: Tensor, max_grid: int) -> _AxisSamples:
     """Sampling positions along one axis and their two bilinear taps (torchvision's rules)."""
     bin_size = roi_size / bins
     grid_f = grid.clamp(min=1).to(start.dtype)[:, None, None]
@@ -238,8 +237,15 @@ class _Chunk:
 
     @classmethod
     def build(
-        cls, rois: Tensor, batch: Tensor, rows: _AxisSamples, cols: _AxisSamples, height: int, width: int,
-        window_h: int, window_w: int,
+        cls,
+        rois: Tensor,
+        batch: Tensor,
+        rows: _AxisSamples,
+        cols: _AxisSamples,
+        height: int,
+        width: int,
+        window_h: int,
+        window_w: int,
     ):
         """``window_h``/``window_w``: bounds of the chunk's windows (host ints, see ``_window_bound``)."""
         rows, cols = rows.take(rois), cols.take(rois)

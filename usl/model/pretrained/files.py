@@ -10,6 +10,7 @@ Two on-disk formats exist in the wild for the networks we start from:
 Pickles are read with an unpickler that only builds numpy arrays and plain containers, so a
 weights file cannot run code (the same guarantee as ``torch.load(weights_only=True)``).
 """
+
 from __future__ import annotations
 
 import pickle

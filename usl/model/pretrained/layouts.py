@@ -18,6 +18,7 @@ Each layout is a list of (regex, target) rules read off the upstream module defi
 
 A target ``None`` marks a tensor we know and deliberately do not use.
 """
+
 from __future__ import annotations
 
 import re
@@ -102,7 +103,10 @@ TORCHVISION_MASK_RCNN = Layout(
         (r"roi_heads\.box_head\.fc6\.(weight|bias)", r"roi_heads.box_head.fcs.0.\1"),
         (r"roi_heads\.box_head\.fc7\.(weight|bias)", r"roi_heads.box_head.fcs.1.\1"),
         (r"roi_heads\.box_predictor\.(cls_score|bbox_pred)\.(weight|bias)", r"roi_heads.box_predictor.\1.\2"),
-        (r"roi_heads\.mask_head\.mask_fcn(\d)\.(weight|bias)", lambda m: f"roi_heads.mask_head.convs.{int(m[1]) - 1}.{m[2]}"),
+        (
+            r"roi_heads\.mask_head\.mask_fcn(\d)\.(weight|bias)",
+            lambda m: f"roi_heads.mask_head.convs.{int(m[1]) - 1}.{m[2]}",
+        ),
         (r"roi_heads\.mask_head\.(\d)\.0\.(weight|bias)", r"roi_heads.mask_head.convs.\1.\2"),
         (r"roi_heads\.mask_predictor\.conv5_mask\.(weight|bias)", r"roi_heads.mask_head.deconv.\1"),
         (r"roi_heads\.mask_predictor\.mask_fcn_logits\.(weight|bias)", r"roi_heads.mask_head.predictor.\1"),
@@ -127,16 +131,37 @@ DETECTRON2_RCNN = Layout(
         (r"proposal_generator\.anchor_generator\.cell_anchors\.\d+", None),  # recomputed from the config
         (r"backbone\.bottom_up\.stem\.conv1\.weight", CONV1),
         (r"backbone\.bottom_up\.stem\.conv1\.norm\.(\w+)", r"backbone.bottom_up.bn1.\1"),
-        (r"backbone\.bottom_up\.res([2-5])\.(\d+)\.conv([1-3])\.weight", lambda m: f"{_stage(m)}.{m[2]}.conv{m[3]}.weight"),
-        (r"backbone\.bottom_up\.res([2-5])\.(\d+)\.conv([1-3])\.norm\.(\w+)", lambda m: f"{_stage(m)}.{m[2]}.bn{m[3]}.{m[4]}"),
-        (r"backbone\.bottom_up\.res([2-5])\.(\d+)\.shortcut\.weight", lambda m: f"{_stage(m)}.{m[2]}.downsample.0.weight"),
-        (r"backbone\.bottom_up\.res([2-5])\.(\d+)\.shortcut\.norm\.(\w+)", lambda m: f"{_stage(m)}.{m[2]}.downsample.1.{m[3]}"),
-        (r"backbone\.fpn_lateral([2-5])\.(weight|bias)", lambda m: f"backbone.fpn.lateral_convs.{int(m[1]) - 2}.{m[2]}"),
+        (
+            r"backbone\.bottom_up\.res([2-5])\.(\d+)\.conv([1-3])\.weight",
+            lambda m: f"{_stage(m)}.{m[2]}.conv{m[3]}.weight",
+        ),
+        (
+            r"backbone\.bottom_up\.res([2-5])\.(\d+)\.conv([1-3])\.norm\.(\w+)",
+            lambda m: f"{_stage(m)}.{m[2]}.bn{m[3]}.{m[4]}",
+        ),
+        (
+            r"backbone\.bottom_up\.res([2-5])\.(\d+)\.shortcut\.weight",
+            lambda m: f"{_stage(m)}.{m[2]}.downsample.0.weight",
+        ),
+        (
+            r"backbone\.bottom_up\.res([2-5])\.(\d+)\.shortcut\.norm\.(\w+)",
+            lambda m: f"{_stage(m)}.{m[2]}.downsample.1.{m[3]}",
+        ),
+        (
+            r"backbone\.fpn_lateral([2-5])\.(weight|bias)",
+            lambda m: f"backbone.fpn.lateral_convs.{int(m[1]) - 2}.{m[2]}",
+        ),
         (r"backbone\.fpn_output([2-5])\.(weight|bias)", lambda m: f"backbone.fpn.output_convs.{int(m[1]) - 2}.{m[2]}"),
-        (r"proposal_generator\.rpn_head\.(conv|objectness_logits|anchor_deltas)\.(weight|bias)", r"proposal_generator.head.\1.\2"),
+        (
+            r"proposal_generator\.rpn_head\.(conv|objectness_logits|anchor_deltas)\.(weight|bias)",
+            r"proposal_generator.head.\1.\2",
+        ),
         (r"roi_heads\.box_head\.fc(\d)\.(weight|bias)", lambda m: f"roi_heads.box_head.fcs.{int(m[1]) - 1}.{m[2]}"),
         (r"roi_heads\.box_predictor\.(cls_score|bbox_pred)\.(weight|bias)", r"roi_heads.box_predictor.\1.\2"),
-        (r"roi_heads\.mask_head\.mask_fcn(\d)\.(weight|bias)", lambda m: f"roi_heads.mask_head.convs.{int(m[1]) - 1}.{m[2]}"),
+        (
+            r"roi_heads\.mask_head\.mask_fcn(\d)\.(weight|bias)",
+            lambda m: f"roi_heads.mask_head.convs.{int(m[1]) - 1}.{m[2]}",
+        ),
         (r"roi_heads\.mask_head\.(deconv|predictor)\.(weight|bias)", r"roi_heads.mask_head.\1.\2"),
     ),
     stride_in_1x1=True,
@@ -154,7 +179,10 @@ CAFFE2_RESNET = Layout(
         (r"conv1_w", CONV1),
         (r"res_conv1_bn_(s|b|rm|riv)", lambda m: f"backbone.bottom_up.bn1.{_C2_NORM[m[1]]}"),
         (r"res([2-5])_(\d+)_branch2([abc])_w", lambda m: f"{_stage(m)}.{m[2]}.conv{_C2_CONV[m[3]]}.weight"),
-        (r"res([2-5])_(\d+)_branch2([abc])_bn_(s|b|rm|riv)", lambda m: f"{_stage(m)}.{m[2]}.bn{_C2_CONV[m[3]]}.{_C2_NORM[m[4]]}"),
+        (
+            r"res([2-5])_(\d+)_branch2([abc])_bn_(s|b|rm|riv)",
+            lambda m: f"{_stage(m)}.{m[2]}.bn{_C2_CONV[m[3]]}.{_C2_NORM[m[4]]}",
+        ),
         (r"res([2-5])_(\d+)_branch1_w", lambda m: f"{_stage(m)}.{m[2]}.downsample.0.weight"),
         (r"res([2-5])_(\d+)_branch1_bn_(s|b|rm|riv)", lambda m: f"{_stage(m)}.{m[2]}.downsample.1.{_C2_NORM[m[3]]}"),
         (r"(?:fc1000|pred)_w", "backbone.bottom_up.fc.weight"),

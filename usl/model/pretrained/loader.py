@@ -13,6 +13,7 @@ mean is exactly 255 x the ImageNet mean, so ``x_bgr255 - mean = 255 * std * x_us
 scaling conv1's input channels by ``255 * std`` and reversing them gives the identical network,
 including at zero-padded borders. Checkpoints written afterwards are plain usl weights.
 """
+
 from __future__ import annotations
 
 import sys
@@ -60,7 +61,9 @@ class InitReport:
         if self.unused:
             lines.append(f"  unused: {_sample(self.unused)}")
         if self.kept:
-            lines.append("  not in the file (initialised as usual): " + ", ".join(f"{p} ({n})" for p, n in self.kept.items()))
+            lines.append(
+                "  not in the file (initialised as usual): " + ", ".join(f"{p} ({n})" for p, n in self.kept.items())
+            )
         if self.folded_pixels:
             lines.append("  BGR 0-255 input convention folded into backbone.bottom_up.conv1 (usl feeds normalised RGB)")
         return lines
@@ -191,7 +194,8 @@ def _check_parts_complete(
     reinitialised = {entry.split(":")[0] for entry in report.reinitialised}
     covered = {_part(t) for t in mapped} | {_part(t) for t in reinitialised}
     missing = [
-        k for k in model
+        k
+        for k in model
         if _part(k) in covered and k not in mapped and k not in reinitialised and not k.endswith("num_batches_tracked")
     ]
     if missing:
