@@ -27,7 +27,6 @@ from functools import lru_cache
 from pathlib import Path
 from typing import Any, Callable
 
-from .errors import UslError
 from .tempfiles import process_token, temp_files_of
 
 HEARTBEAT_SECONDS = 5.0
@@ -125,12 +124,9 @@ class Owner:
         }
 
     def __enter__(self) -> "Owner":
-        try:
-            self.owners_dir.mkdir(parents=True, exist_ok=True)
-            self.claims_dir.mkdir(exist_ok=True)
-            _create_exclusive(self.file, self.info())
-        except OSError as exc:  # a read-only folder or disk, no space
-            raise UslError(f"{exc.filename or self.dir}: cannot write the build state ({exc.strerror})") from None
+        self.owners_dir.mkdir(parents=True, exist_ok=True)  # a full or read-only disk: the caller's storage_faults
+        self.claims_dir.mkdir(exist_ok=True)
+        _create_exclusive(self.file, self.info())
         self._thread.start()
         self.reap_stale_owners()
         return self
