@@ -23,10 +23,12 @@ import shutil
 import socket
 import threading
 import time
+from contextlib import contextmanager, suppress
 from functools import lru_cache
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Iterator
 
+from .errors import UslError
 from .tempfiles import process_token, temp_files_of
 
 HEARTBEAT_SECONDS = 5.0
@@ -203,6 +205,11 @@ class Owner:
         aside.unlink()
         return False
 
+    def holder(self, name: str) -> dict[str, Any]:
+        """Who holds the claim ``name`` (the holder's ``info``; empty if nobody, or being written)."""
+        found = _read(self._claim_path(name))
+        return _holder(found[0]) if found is not None else {}
+
     def release(self, name: str) -> None:
         self._release(self._claim_path(name))
 
@@ -235,3 +242,31 @@ class Owner:
             for leftover in Path(directory).glob(f"*{token}*"):
                 leftover.unlink(missing_ok=True)
         shutil.rmtree(self.dir / f"scratch-{token}", ignore_errors=True)
+
+
+LOCK_DIR = ".lock"  # a folder's owner registry when one process at a time may write the folder
+
+
+@contextmanager
+def sole_writer(folder: Path, what: str, stale_after: float = STALE_AFTER_SECONDS) -> Iterator[Owner]:
+    """Hold ``folder`` for this process while the block runs (``what``: a training run, ...).
+
+    Another live process holding it makes this a UslError naming its host and pid; a holder that
+    is gone (same rules as shard claims) is taken over, and its temp files in ``folder`` are reaped.
+    """
+    lock_dir = Path(folder) / LOCK_DIR
+    try:
+        with Owner(lock_dir, stale_after) as owner:
+            if not owner.claim("folder"):
+                holder = owner.holder("folder")
+                who = (
+                    f"pid {holder.get('pid', '?')} on {holder.get('hostname', '?')} since {holder.get('started', '?')}"
+                )
+                raise UslError(
+                    f"{folder}: {what} is already writing here ({who}); wait for it to end or use another folder"
+                )
+            yield owner
+    finally:
+        for directory in (lock_dir / "claims", lock_dir / "owners", lock_dir):
+            with suppress(OSError):  # another process's files are still there
+                directory.rmdir()

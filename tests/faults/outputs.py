@@ -1,0 +1,42 @@
+"""What a fault may not touch: the finished files of an output folder, and how to compare them."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from usl.records.tempfiles import TMP_MARK
+
+
+def finished_files(root: Path) -> dict[str, bytes]:
+    """Every finished file under ``root`` (shards, markers, card, manifest, build description),
+    by relative path; temp files and the owner/claim registry (which come and go) are left out."""
+    found = {}
+    for path in sorted(Path(root).rglob("*")):
+        relative = path.relative_to(root).as_posix()
+        if path.is_file() and TMP_MARK not in path.name and not relative.startswith((".build/owners", ".build/claims")):
+            found[relative] = path.read_bytes()
+    return found
+
+
+def temp_files(root: Path) -> list[str]:
+    return sorted(p.relative_to(root).as_posix() for p in Path(root).rglob(f"*{TMP_MARK}*"))
+
+
+def bytes_lost(earlier: dict[str, bytes], later: dict[str, bytes]) -> int:
+    """Bytes of ``earlier``'s files that ``later`` lacks or holds changed (lost or overwritten)."""
+    return sum(len(data) for name, data in earlier.items() if later.get(name) != data)
+
+
+def without_creator(manifest: bytes) -> dict:
+    """A manifest without its creator (which names --out): equal for equal datasets in other folders."""
+    data = json.loads(manifest)
+    data.pop("creator", None)
+    return data
+
+
+def one_line_error(text: str) -> str:
+    """The single line a CLI printed on stderr; fails on a traceback or several lines."""
+    lines = [line for line in text.splitlines() if line.strip()]
+    assert len(lines) == 1 and "Traceback" not in text, text
+    return lines[0]
