@@ -3,9 +3,12 @@
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 from usl.records.tempfiles import TMP_MARK
+
+PROGRESS_BAR = re.compile(r"\d+%\|")
 
 
 def finished_files(root: Path) -> dict[str, bytes]:
@@ -36,7 +39,7 @@ def without_creator(manifest: bytes) -> dict:
 
 
 def one_line_error(text: str) -> str:
-    """The single line a CLI printed on stderr; fails on a traceback or several lines."""
-    lines = [line for line in text.splitlines() if line.strip()]
+    """The single line a CLI printed on stderr (besides progress bars); fails on a traceback or several lines."""
+    lines = [line for line in re.split(r"[\r\n]", text) if line.strip() and not PROGRESS_BAR.search(line)]
     assert len(lines) == 1 and "Traceback" not in text, text
     return lines[0]

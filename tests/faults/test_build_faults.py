@@ -15,29 +15,7 @@ from pathlib import Path
 import pytest
 from outputs import bytes_lost, finished_files, one_line_error, temp_files, without_creator
 
-from pipelines.scene_shapes.cli import main
-
-ARGS = [
-    "--num-scenes",
-    "3",
-    "--num-models",
-    "12",
-    "--resolution",
-    "16",
-    "--views",
-    "2",
-    "--heights",
-    "1",
-    "--scenes-per-shard",
-    "1",
-    "--seed",
-    "3",
-    "--quiet",
-]
-
-
-def build(out: Path, *extra: str) -> int:
-    return main(["--out", str(out), *ARGS, *extra])
+from small_build import build
 
 
 @pytest.fixture(scope="module")
