@@ -21,7 +21,7 @@ ACCESS_ERRNOS = {
     errno.EPERM: "operation not permitted",
     errno.EROFS: "read-only file system",
 }
-RERUN = "rerun the same command to resume"
+RERUN = "rerun the same command to resume"  # builds, gather, migrate: a rerun finds what is done
 
 
 def storage_cause(exc: BaseException | None) -> OSError | None:
@@ -35,21 +35,21 @@ def storage_cause(exc: BaseException | None) -> OSError | None:
     return None
 
 
-def storage_message(cause: OSError, where: Path, kept: str) -> str:
-    """``<where>: <what ran out> (errno N); <kept>``. A full disk is named by the folder being written
-    (the file is often a temp file, or unknown to pyarrow); a refused write by its file."""
+def storage_message(cause: OSError, where: Path, kept: str, resume: str = RERUN) -> str:
+    """``<where>: <what ran out> (errno N); <kept>: <what to do>``. A full disk is named by the folder
+    being written (the file is often a temp file, or unknown to pyarrow); a refused write by its file."""
     if cause.errno in SPACE_ERRNOS:
-        return f"{where}: {SPACE_ERRNOS[cause.errno]} (errno {cause.errno}); {kept}: free space and {RERUN}"
+        return f"{where}: {SPACE_ERRNOS[cause.errno]} (errno {cause.errno}); {kept}: free space and {resume}"
     path = cause.filename or where
-    return f"{path}: cannot write, {ACCESS_ERRNOS[cause.errno]} (errno {cause.errno}); {kept}: fix that and {RERUN}"
+    return f"{path}: cannot write, {ACCESS_ERRNOS[cause.errno]} (errno {cause.errno}); {kept}: fix that and {resume}"
 
 
 @contextmanager
-def storage_faults(where: Path, kept: str) -> Iterator[None]:
+def storage_faults(where: Path, kept: str, resume: str = RERUN) -> Iterator[None]:
     """Raise a full disk or refused write inside the block as a one-line UslError.
 
     ``where`` is the folder being written, ``kept`` what survives the failure (``the shards
-    finished so far are kept``). Any other exception passes unchanged.
+    finished so far are kept``), ``resume`` how to go on. Any other exception passes unchanged.
     """
     try:
         yield
@@ -59,4 +59,4 @@ def storage_faults(where: Path, kept: str) -> Iterator[None]:
         cause = storage_cause(exc)
         if cause is None:
             raise
-        raise UslError(storage_message(cause, Path(where), kept)) from exc
+        raise UslError(storage_message(cause, Path(where), kept, resume)) from exc
