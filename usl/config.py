@@ -111,10 +111,9 @@ class ShapeHeadConfig:
     # RoIAlign features (the layout head's pooled input, flattened) to an offset of every vertex,
     # V_g = sphere + tanh(MLP), each vertex with output weights of its own (CMR's shape decoder).
     # A refinement stage sees one pixel per vertex and ~6 graph hops; this stage sees the whole
-    # object at once, so an offset may follow from what the image shows anywhere in the box. On
-    # unseen scenes it took tiny's Chamfer 0.071 -> 0.049 and F1 48 -> 62 (README). It learns
-    # stably at a tenth of the rate (optim.lr_mult={shape_head.global_mlp: 0.1}, tiny's): at the full
-    # rate one seed of two saturated its tanh within 200 iterations. 0: the paper's head.
+    # object at once, so an offset may follow from what the image shows anywhere in the box. It
+    # learns stably at a tenth of the rate (optim.lr_mult={shape_head.global_mlp: 0.1}, tiny's): at
+    # the full rate its tanh can saturate within a few hundred iterations. 0: the paper's head.
     global_stage: int = 0
 
     def __post_init__(self) -> None:
@@ -206,9 +205,9 @@ class LossConfig:
     # to an (object, view) pair only when IoU(rendered > 0.5, true) exceeds this (paper: 0.5).
     iou_threshold: float = 0.5
     # Which pairs l_xent applies to: "iou" (paper Eq. 4, also for Table 1's "w/o l_dist" row: only
-    # l_dist is removed) or "all" (no gate). Without l_dist neither trains at CPU scale (README):
-    # gated, other-view pairs fall below the threshold and z, rho get no gradient; ungated, l_xent
-    # drives z and rho to the ends of their range, where the silhouettes vanish.
+    # l_dist is removed) or "all" (no gate: to ablate Eq. 4's gate). Without l_dist neither trains at
+    # CPU scale: gated, other-view pairs fall below the threshold and z, rho get no gradient;
+    # ungated, l_xent drives z and rho to the ends of their range, where the silhouettes vanish.
     xent_gate: str = "iou"
     # The gate exists because l_xent says nothing about layout when silhouettes do not overlap.
     # In the input view they always do: the 2D box fixes the projection whatever z and rho are.
@@ -245,7 +244,9 @@ class OptimConfig:
     warmup_iters: int = 0  # linear warm-up length (0: none)
     warmup_factor: float = 0.001  # rate at iteration 0 of the warm-up, as a fraction of lr
     max_iter: int = 1000  # iterations to train
-    clip_grad_norm: float = 0.0  # 0 disables clipping (the norm is still checked for NaN/inf)
+    # Clip the whole gradient's norm at this, against rare gradient spikes after which a run can stall
+    # (tiny's global stage sends them). 0 disables clipping (the norm is still checked for NaN/inf).
+    clip_grad_norm: float = 0.0
     # Learning-rate factors by parameter-name prefix, e.g. {shape_head: 10}: the longest matching
     # prefix wins, other parameters keep lr. Empty: one rate for the whole model (the paper).
     lr_mult: dict[str, float] = field(default_factory=dict)
