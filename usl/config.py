@@ -100,7 +100,7 @@ class ShapeHeadConfig:
     # Mesh R-CNN: each stage's last GraphConv output is concatenated into the next stage's first
     # GraphConv input (its width grows by hidden_dim); False: stages share only the vertex positions
     pass_features: bool = False
-    sampler: str = "roimap"  # "roimap" (paper) | "vertalign" (RoIAlign + VertAlign: Table 1's "w/o RoIMap")
+    sampler: str = "roimap"  # "roimap" (paper) | "vertalign" (Mesh R-CNN's: Table 1's "w/o RoIMap")
     vertalign_resolution: int = 14  # RoIAlign size of the VertAlign ablation
     # GraphConv weight init: "normal" N(0, 0.01²) (Mesh R-CNN) | "kaiming" (He init for the
     # neighbourhood sum): with "normal" three GraphConvs pass ~1% of the image features on
