@@ -248,15 +248,18 @@ LOCK_DIR = ".lock"  # a folder's owner registry when one process at a time may w
 
 
 @contextmanager
-def sole_writer(folder: Path, what: str, stale_after: float = STALE_AFTER_SECONDS) -> Iterator[Owner]:
-    """Hold ``folder`` for this process while the block runs (``what``: a training run, ...).
+def sole_writer(
+    folder: Path, what: str, token_dirs: tuple[Path, ...] = (), stale_after: float = STALE_AFTER_SECONDS
+) -> Iterator[Owner]:
+    """Hold ``folder`` for this process while the block runs (``what``: the command, for the error).
 
     Another live process holding it makes this a UslError naming its host and pid; a holder that
-    is gone (same rules as shard claims) is taken over, and its temp files in ``folder`` are reaped.
+    is gone (same rules as shard claims) is taken over, and its temp files in ``folder`` and in
+    ``token_dirs`` (sub-folders with temp files, e.g. checkpoints) are reaped.
     """
     lock_dir = Path(folder) / LOCK_DIR
     try:
-        with Owner(lock_dir, stale_after) as owner:
+        with Owner(lock_dir, stale_after, token_dirs=token_dirs) as owner:
             if not owner.claim("folder"):
                 holder = owner.holder("folder")
                 who = (
