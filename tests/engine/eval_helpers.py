@@ -21,7 +21,7 @@ import trimesh  # noqa: E402
 
 from data_specs import load_dataset_spec  # noqa: E402
 from pipelines.common import BuildOptions, ShardPlan, run_build  # noqa: E402
-from usl.engine.eval_types import EvalInput  # noqa: E402
+from usl.evaluation.types import EvalInput  # noqa: E402
 from usl.geometry import ico_sphere  # noqa: E402
 from usl.geometry.cameras import look_at  # noqa: E402
 from usl.model.outputs import ObjectPredictions  # noqa: E402

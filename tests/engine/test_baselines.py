@@ -8,8 +8,8 @@ import torch
 
 from data_specs import load_dataset_spec
 from usl.data.frames import FrameData
-from usl.engine.baselines import FixedDepthBaseline, LayoutOnly, RandomDepthBaseline, TrueDepth, spec_baselines
-from usl.engine.eval_types import EvalInput, TrueMesh
+from usl.evaluation.baselines import FixedDepthBaseline, LayoutOnly, RandomDepthBaseline, TrueDepth, spec_baselines
+from usl.evaluation.types import EvalInput, TrueMesh
 
 K = np.array([[300.0, 0.0, 160.0], [0.0, 280.0, 120.0], [0.0, 0.0, 1.0]])
 

@@ -17,11 +17,11 @@ import torch
 from data_specs import load_dataset_spec
 from eval_helpers import PerfectPredictor, build_dataset, render_truth
 from usl.data.frames import CategoryIndex, decode_frame
-from usl.engine.baselines import spec_baselines
-from usl.engine.eval_scene import EvalConfig
-from usl.engine.eval_types import EvalInput
-from usl.engine.evaluate import run_evaluation
-from usl.engine.report import markdown_table, write_report
+from usl.evaluation.baselines import spec_baselines
+from usl.evaluation.scene import EvalConfig
+from usl.evaluation.types import EvalInput
+from usl.evaluation.evaluate import run_evaluation
+from usl.evaluation.report import markdown_table, write_report
 from usl.records import RecordsDataset, decode_mask, frame_pose
 
 FAST = dict(num_samples_3d=400)

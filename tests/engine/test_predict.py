@@ -13,12 +13,12 @@ import torch
 import trimesh
 
 from eval_helpers import tiny_checkpoint
-from usl.engine.baselines import sphere_verts
-from usl.engine.gltf_scene import CAMERA_NODE, IMAGE_NODE
-from usl.engine.predict import camera_for, image_frame, model_detector, predict_images, read_image, read_intrinsics
-from usl.engine.predict_cli import main
+from usl.evaluation.baselines import sphere_verts
+from usl.inference.gltf_scene import CAMERA_NODE, IMAGE_NODE
+from usl.inference.predict import camera_for, image_frame, model_detector, predict_images, read_image, read_intrinsics
+from usl.cli.predict import main
 from usl.model.outputs import ObjectPredictions
-from usl.records import UslError
+from usl.errors import UslError
 
 CATEGORIES = ["chair", "sofa", "dining table"]
 

@@ -18,7 +18,8 @@ from usl.engine.checkpoint import CheckpointError, load_model, read_checkpoint  
 from usl.engine.distributed import DistInfo  # noqa: E402
 from usl.engine.run_log import read_metrics  # noqa: E402
 from usl.engine.skip_guard import TooManySkippedSteps  # noqa: E402
-from usl.engine.train import Meter, Trainer, main, seed_everything  # noqa: E402
+from usl.cli.train import main  # noqa: E402
+from usl.engine.train import Meter, Trainer, seed_everything  # noqa: E402
 from usl.config import load_config  # noqa: E402
 from usl.model.outputs import ObjectPredictions  # noqa: E402
 from usl.model.usl_model import USLModel  # noqa: E402
@@ -138,7 +139,7 @@ def test_two_process_ddp_step_equals_one_process_on_the_combined_batch(records, 
         "--standalone",
         "--nproc_per_node=2",
         "-m",
-        "usl.engine.train",
+        "usl.cli.train",
         *_args(records, tmp_path / "two", *common, "train.batch_size=1"),
     ]
     result = subprocess.run(command, env=env, cwd=REPO, capture_output=True, text=True, timeout=300)

@@ -19,8 +19,8 @@ from usl.config import (
     to_dict,
 )
 from usl.config_docs import field_docs, iter_keys
-from usl.engine.train_cli import main as train_main
-from usl.engine.train_cli import parse_args
+from usl.cli.train import main as train_main
+from usl.cli.train import parse_args
 from usl.model.detector import DetectorConfig
 
 

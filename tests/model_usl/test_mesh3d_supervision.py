@@ -11,7 +11,8 @@ from usl.config import LayoutRange, load_config
 from usl.data import CategoryIndex, MultiViewDataset, SampleKey
 from usl.model.mesh3d_loss import mesh_supervision_loss
 from usl.model.usl_model import USLModel
-from usl.records import RecordsDataset, UslError
+from usl.records import RecordsDataset
+from usl.errors import UslError
 
 from test_usl_model import _true_meshes  # noqa: E402  (same folder: an independent camera-frame cast)
 

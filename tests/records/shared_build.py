@@ -14,7 +14,7 @@ sys.path.insert(0, str(Path(__file__).parent))
 
 import fake_scenes  # noqa: E402
 from pipelines.common import BuildOptions, ShardPlan, run_build  # noqa: E402
-from usl.records import UslError  # noqa: E402
+from usl.errors import UslError  # noqa: E402
 
 NUM_SHARDS = 12
 

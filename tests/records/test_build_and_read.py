@@ -11,7 +11,8 @@ from torch.utils.data import DataLoader
 
 from fake_scenes import SPEC, build_fake_scene
 from pipelines.common import BuildOptions, ShardPlan, run_build
-from usl.records import RecordsDataset, SceneStream, UslError, decode_mask
+from usl.records import RecordsDataset, SceneStream, decode_mask
+from usl.errors import UslError
 
 HERE = Path(__file__).parent
 

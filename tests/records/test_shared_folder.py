@@ -14,7 +14,7 @@ import fake_scenes
 from pipelines.common import BuildOptions, run_build
 from shared_build import NUM_SHARDS, plans
 from usl.records.claims import host_identity
-from usl.records.cli import main as records_main
+from usl.cli.records import main as records_main
 from usl.records.shards import shard_paths, shard_temp_path
 from usl.records.validate import validate_dataset
 

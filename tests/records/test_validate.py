@@ -8,8 +8,9 @@ import pytest
 
 from fake_scenes import SPEC, build_fake_scene
 from pipelines.common import BuildOptions, ShardPlan, run_build
-from usl.records import RecordsDataset, UslError
-from usl.records.cli import main as records_cli
+from usl.records import RecordsDataset
+from usl.errors import UslError
+from usl.cli.records import main as records_cli
 from usl.records.validate import validate_dataset
 
 

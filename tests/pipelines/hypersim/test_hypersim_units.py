@@ -22,7 +22,8 @@ from pipelines.hypersim.paths import FrameSkip, TrajectoryPaths
 from pipelines.hypersim.resample import Resampler
 from pipelines.hypersim.tonemap import apply_tonemap, percentile, tonemap_scale
 from usl.geometry.cameras import project, scale_intrinsics
-from usl.records import UslError, make_instance
+from usl.records import make_instance
+from usl.errors import UslError
 
 # --- cameras -------------------------------------------------------------------------------------
 

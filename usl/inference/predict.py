@@ -1,8 +1,8 @@
 """``usl-predict``: 3D objects from single images with a trained model (the library behind
-``usl.engine.predict_cli``).
+``usl.cli.predict``).
 
 For each image it writes ``<name>.glb`` -- one mesh per detected object, the input camera and the
-image as a textured plane, in glTF's +Y-up axes (``usl.engine.gltf_scene``) -- plus ``.obj``,
+image as a textured plane, in glTF's +Y-up axes (``usl.inference.gltf_scene``) -- plus ``.obj``,
 ``.ply`` (objects only) and ``.html`` (a self-contained 3D viewer of the GLB) with ``--formats``,
 and ``<name>_overlay.png`` (the meshes rendered over the image, with boxes and scores).
 """
@@ -21,14 +21,14 @@ import torch
 import trimesh
 
 from usl.data.frames import FrameData
-from usl.engine.eval_model import ModelPredictor, load_checkpoint_model
-from usl.engine.eval_types import EvalInput
-from usl.engine.gltf_scene import object_meshes, prediction_scene
-from usl.engine.predict_cli import FORMATS
-from usl.engine.visualize import draw_boxes, palette, render_overlay, write_png
+from usl.evaluation.model import ModelPredictor, load_checkpoint_model
+from usl.evaluation.types import EvalInput
+from usl.inference.gltf_scene import object_meshes, prediction_scene
+from usl.inference.formats import FORMATS
+from usl.vis.visualize import draw_boxes, palette, render_overlay, write_png
 from usl.geometry.cameras import intrinsics_from_fov
 from usl.model.outputs import ObjectPredictions
-from usl.records import UslError
+from usl.errors import UslError
 
 Detect = Callable[[FrameData], ObjectPredictions]
 

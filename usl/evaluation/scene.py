@@ -20,12 +20,12 @@ from typing import Any, Sequence
 import torch
 
 from usl.data.frames import CategoryIndex, FrameData, decode_frame
-from usl.engine.baselines import stable_seed
-from usl.engine.eval_detection import CocoDetections, match_detections
-from usl.engine.eval_render import DEFAULT_MAX_RENDER_BYTES, detection_masks, score_pairs
-from usl.engine.eval_targets import META_COLUMNS, decode_view_targets, presence, true_meshes_in_camera
-from usl.engine.eval_types import EvalInput, Predictor
-from usl.engine.eval_views import ViewSelection, select_input_views
+from usl.evaluation.baselines import stable_seed
+from usl.evaluation.detection import CocoDetections, match_detections
+from usl.evaluation.render import DEFAULT_MAX_RENDER_BYTES, detection_masks, score_pairs
+from usl.evaluation.targets import META_COLUMNS, decode_view_targets, presence, true_meshes_in_camera
+from usl.evaluation.types import EvalInput, Predictor
+from usl.evaluation.views import ViewSelection, select_input_views
 from usl.geometry import Meshes
 from usl.metrics import compare_meshes
 from usl.model.outputs import ObjectPredictions

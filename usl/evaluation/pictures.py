@@ -16,8 +16,8 @@ import numpy as np
 import torch
 
 from usl.data.frames import CategoryIndex, decode_frame
-from usl.engine.eval_types import EvalInput
-from usl.engine.visualize import (
+from usl.evaluation.types import EvalInput
+from usl.vis.visualize import (
     GRAY,
     birds_eye,
     compose_rows,

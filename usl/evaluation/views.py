@@ -19,7 +19,7 @@ import math
 from dataclasses import dataclass
 from typing import Any, Mapping, Protocol, Sequence
 
-from usl.records import UslError
+from usl.errors import UslError
 
 
 def select_input_views(pattern: str, num_views: int) -> list[int]:

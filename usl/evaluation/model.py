@@ -15,9 +15,9 @@ import torch
 
 from usl.data.frames import FrameData
 from usl.data.transforms import resize_frame
-from usl.engine.eval_types import EvalInput
+from usl.evaluation.types import EvalInput
 from usl.model.outputs import ObjectPredictions
-from usl.records import UslError
+from usl.errors import UslError
 
 
 def frames_for_model(frames: Sequence[FrameData], max_size: int) -> list[FrameData]:

@@ -18,14 +18,12 @@ import sys
 from pathlib import Path
 from typing import Sequence
 
-from usl.cli_common import common_options, make_parser, resolve_device
-from usl.engine.baseline_options import DEFAULT_SPHERE_LEVEL, TRUE_DEPTH_SOURCES
-from usl.engine.report import TABLE_LAYOUTS  # torch-free, like everything imported here
+from usl.cli.common import common_options, make_parser, resolve_device
+from usl.evaluation.choices import PICTURE_SELECTIONS, ROWS
+from usl.evaluation.baseline_options import DEFAULT_SPHERE_LEVEL, TRUE_DEPTH_SOURCES
+from usl.evaluation.report import TABLE_LAYOUTS  # torch-free, like everything imported here
 
 COMMAND = "usl-eval"
-ROWS = ("random", "fixed", "model", "detections", "layout_only", "sphere_true_depth", "model_true_depth")
-MODEL_ROWS = ("model", "detections", "layout_only", "model_true_depth")
-PICTURE_SELECTIONS = ("spread", "extremes")  # see usl.engine.eval_gallery
 
 
 def parser() -> argparse.ArgumentParser:
@@ -126,10 +124,11 @@ def training_curves(checkpoint: str | None, out: Path) -> str | None:
 def main(argv: Sequence[str] | None = None) -> int:
     args = parser().parse_args(argv)
     args.device = resolve_device(args.device)  # torch loads from here on
-    from usl.engine.eval_scene import EvalConfig
-    from usl.engine.evaluate import build_predictors, dataset_spec, run_evaluation
-    from usl.engine.report import write_report
-    from usl.records import RecordsDataset, UslError
+    from usl.evaluation.scene import EvalConfig
+    from usl.evaluation.evaluate import build_predictors, dataset_spec, run_evaluation
+    from usl.evaluation.report import write_report
+    from usl.records import RecordsDataset
+    from usl.errors import UslError
 
     try:
         dataset = RecordsDataset(args.root, args.split)

@@ -22,10 +22,10 @@ import sys
 from pathlib import Path
 from typing import Sequence
 
-from usl.cli_common import common_options, make_parser, resolve_device
+from usl.cli.common import common_options, make_parser, resolve_device
+from usl.inference.formats import FORMATS
 
 COMMAND = "usl-predict"
-FORMATS = ("glb", "obj", "ply", "html")  # here, not in usl.engine.predict: --help must not load torch
 
 
 def parser() -> argparse.ArgumentParser:
@@ -55,8 +55,8 @@ def parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = parser().parse_args(argv)
-    from usl.engine.predict import model_detector, predict_images, read_intrinsics  # torch loads here
-    from usl.records import UslError
+    from usl.inference.predict import model_detector, predict_images, read_intrinsics  # torch loads here
+    from usl.errors import UslError
 
     try:
         K = read_intrinsics(args.k_file) if args.k_file else None

@@ -1,4 +1,4 @@
-"""The evaluation behind ``usl-eval`` (command line: ``usl.engine.eval_cli``): every predictor on
+"""The evaluation behind ``usl-eval`` (command line: ``usl.cli.evaluate``): every predictor on
 the input views of a split, scene by scene, into per-object rows, summaries and pictures.
 
 The metric definitions are in ``eval_render`` (pairs), ``eval_scene`` (aggregation),
@@ -17,16 +17,17 @@ from tqdm import tqdm
 
 from data_specs import DATASETS, load_dataset_spec
 from usl.data.frames import CategoryIndex
-from usl.engine.baselines import FixedDepthBaseline, LayoutOnly, TrueDepth, spec_baselines
-from usl.engine.eval_cli import MODEL_ROWS, ROWS
-from usl.engine.eval_detection import CocoDetections
-from usl.engine.eval_gallery import Gallery
-from usl.engine.eval_scene import EvalConfig, evaluate_scene
-from usl.engine.eval_summary import DetectionCounts, PredictorSummary, summarize
-from usl.engine.eval_types import Predictor
-from usl.engine.eval_views import view_selection
-from usl.engine.report import choose_layout
-from usl.records import RecordsDataset, UslError
+from usl.evaluation.baselines import FixedDepthBaseline, LayoutOnly, TrueDepth, spec_baselines
+from usl.evaluation.choices import MODEL_ROWS, ROWS
+from usl.evaluation.detection import CocoDetections
+from usl.evaluation.gallery import Gallery
+from usl.evaluation.scene import EvalConfig, evaluate_scene
+from usl.evaluation.summary import DetectionCounts, PredictorSummary, summarize
+from usl.evaluation.types import Predictor
+from usl.evaluation.views import view_selection
+from usl.evaluation.report import choose_layout
+from usl.records import RecordsDataset
+from usl.errors import UslError
 
 
 @dataclass
@@ -143,7 +144,7 @@ def build_predictors(args: argparse.Namespace, spec: dict[str, Any]) -> tuple[li
             )
     model = detector = scored = None
     if needs_model:
-        from usl.engine.eval_model import model_predictors  # imports the model only when it is used
+        from usl.evaluation.model import model_predictors  # imports the model only when it is used
 
         model, detector, scored = model_predictors(
             args.checkpoint, args.device, [c["name"] for c in spec["categories"]], args.model_name

@@ -31,8 +31,8 @@ from typing import Any, Sequence
 
 import torch
 
-from usl.engine.baseline_options import DEFAULT_SPHERE_LEVEL, TRUE_DEPTH_SOURCES
-from usl.engine.eval_types import EvalInput, Predictor
+from usl.evaluation.baseline_options import DEFAULT_SPHERE_LEVEL, TRUE_DEPTH_SOURCES
+from usl.evaluation.types import EvalInput, Predictor
 from usl.geometry import cube_to_frustum, frustum_to_cube, ico_sphere
 from usl.model.outputs import ObjectPredictions
 

@@ -26,7 +26,7 @@ import torch
 from usl.geometry import Meshes
 from usl.geometry.cameras import unproject
 from usl.render import HardRender, rasterize_hard
-from usl.records import UslError
+from usl.errors import UslError
 
 Tensor = torch.Tensor
 GRAY = (128, 128, 128)

@@ -23,7 +23,7 @@ from typing import Iterator, Sequence
 
 import torch
 
-from usl.engine.eval_targets import ViewTargets
+from usl.evaluation.targets import ViewTargets
 from usl.geometry import Meshes
 from usl.geometry.cameras import project, relative_transform, transform_points
 from usl.metrics import box_giou, depth_l1, mask_iou, masks_to_boxes

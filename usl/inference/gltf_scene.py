@@ -23,7 +23,7 @@ import torch
 import trimesh
 from PIL import Image
 
-from usl.engine.visualize import palette
+from usl.vis.visualize import palette
 from usl.geometry.cameras import opencv_to_opengl_camera, unproject
 from usl.model.outputs import ObjectPredictions
 

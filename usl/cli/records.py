@@ -16,7 +16,7 @@ import json
 import sys
 from pathlib import Path
 
-from usl.cli_common import common_options, make_parser
+from usl.cli.common import common_options, make_parser
 
 COMMAND = "usl-records"
 
@@ -60,11 +60,11 @@ def parser():
 
 def main(argv: list[str] | None = None) -> int:
     args = parser().parse_args(argv)
-    from .errors import UslError  # the tools below load pyarrow, OpenCV and (info) torch: after parsing
+    from usl.errors import UslError  # the tools below load pyarrow, OpenCV and (info) torch: after parsing
 
     try:
         if args.command == "gather":
-            from .gather import gather
+            from usl.records.gather import gather
 
             summary = gather(args.parts, args.out, progress=True)
             print(f"{args.out}: copied {summary.copied} shard(s), kept {summary.kept}")
@@ -78,7 +78,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{args.out / 'manifest.json'} written")
             return 0
         if args.command == "validate":
-            from .validate import validate_dataset
+            from usl.records.validate import validate_dataset
 
             problems = validate_dataset(
                 args.root, args.split, decode_images=not args.no_images, progress=not args.quiet
@@ -88,16 +88,16 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{args.root}: {'valid' if not problems else f'{len(problems)} problem(s)'}")
             return 1 if problems else 0
         if args.command == "migrate":
-            from .migrate import migrate_dataset
+            from usl.records.migrate import migrate_dataset
 
             print(migrate_dataset(args.root, progress=True).describe(args.root))
             return 0
         if args.command == "export-coco":
-            from .coco import export_coco
+            from usl.records.coco import export_coco
 
             print(export_coco(args.root, args.split, args.out, args.images_dir, progress=True).describe())
             return 0
-        from .info import contact_sheet, dataset_counts, format_counts
+        from usl.records.info import contact_sheet, dataset_counts, format_counts
 
         counts = dataset_counts(args.root)
         print(json.dumps(counts, indent=1) if args.json else format_counts(counts))

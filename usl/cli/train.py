@@ -3,7 +3,7 @@
     usl-train --config tiny data.root=/data/scene_shapes_small
     usl-train --config hypersim --out runs/hs data.root=/data/hypersim \\
         model.init_weights=/weights/model_final_f10217.pkl
-    torchrun --nproc_per_node 8 -m usl.engine.train --config hypersim data.root=...
+    torchrun --nproc_per_node 8 -m usl.cli.train --config hypersim data.root=...
     usl-train --resume --out runs/hs                    # continue exactly where it stopped
     usl-train --resume --out runs/hs optim.max_iter=90000
     usl-train --config hypersim --print-config          # the resolved config as YAML; nothing runs
@@ -23,12 +23,12 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Sequence
 
-from usl.cli_common import common_options, deprecated_alias, make_parser
+from usl.cli.common import common_options, deprecated_alias, make_parser
+from usl.engine.command import COMMAND
 
 if TYPE_CHECKING:
     from usl.config import Config
 
-COMMAND = "usl-train"
 _OVERRIDE = re.compile(r"^[A-Za-z_][\w.]*=")
 _SHORTCUTS = {"device": "train.device", "seed": "train.seed", "workers": "data.num_workers"}
 
@@ -82,7 +82,7 @@ def resolve_config(args: argparse.Namespace) -> tuple[Config, dict[str, Any] | N
     """The config the arguments ask for and, when resuming, the checkpoint payload."""
     from usl.config import ConfigError, apply_overrides, load_config, to_dict
 
-    from .checkpoint import checkpoint_config, read_checkpoint
+    from usl.engine.checkpoint import checkpoint_config, read_checkpoint
 
     payload = None
     if args.resume is not None:
@@ -105,7 +105,7 @@ def resolve_run(args: argparse.Namespace) -> tuple[Config, Path, dict[str, Any] 
     """The config, run folder and (when resuming) checkpoint payload the arguments ask for."""
     from usl.config import ConfigError
 
-    from .checkpoint import CHECKPOINT_DIR
+    from usl.engine.checkpoint import CHECKPOINT_DIR
 
     cfg, payload = resolve_config(args)
     if payload is not None:
@@ -120,10 +120,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parse_args(argv)
     from usl.config import Config, ConfigError, dump_config  # torch loads from here on
     from usl.config_docs import format_keys
-    from usl.records import UslError
-    from usl.records.errors import error_line
+    from usl.errors import UslError
+    from usl.errors import error_line
 
-    from .checkpoint import CheckpointError
+    from usl.engine.checkpoint import CheckpointError
 
     try:
         if args.list_keys:
@@ -133,8 +133,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             print(dump_config(resolve_config(args)[0]), end="")
             return 0
         cfg, run_dir, payload = resolve_run(args)
-        from .distributed import init_distributed, shutdown_distributed
-        from .train import Trainer
+        from usl.engine.distributed import init_distributed, shutdown_distributed
+        from usl.engine.train import Trainer
 
         info = init_distributed(cfg.train.device)
         try:
@@ -145,3 +145,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"{COMMAND}: error: {error_line(exc)}", file=sys.stderr)
         return 2
     return 0
+
+
+if __name__ == "__main__":  # torchrun -m usl.cli.train ...
+    sys.exit(main())

@@ -24,13 +24,14 @@ import numpy as np
 import torch
 
 from usl.data.frames import CategoryIndex
-from usl.engine.eval_cli import PICTURE_SELECTIONS
-from usl.engine.eval_pictures import evaluation_picture
-from usl.engine.eval_scene import EvalConfig, SceneOutcome, evaluate_scene
-from usl.engine.eval_types import Predictor
-from usl.engine.eval_views import ViewSelection
-from usl.engine.visualize import write_png
-from usl.records import RecordsDataset, UslError, frame_pose
+from usl.evaluation.choices import PICTURE_SELECTIONS
+from usl.evaluation.pictures import evaluation_picture
+from usl.evaluation.scene import EvalConfig, SceneOutcome, evaluate_scene
+from usl.evaluation.types import Predictor
+from usl.evaluation.views import ViewSelection
+from usl.vis.visualize import write_png
+from usl.records import RecordsDataset, frame_pose
+from usl.errors import UslError
 
 INDEX_NAME = "index.md"
 

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
-from usl.engine.eval_summary import PredictorSummary
+from usl.evaluation.summary import PredictorSummary
 
 TABLE_LAYOUTS = ("scene_shapes", "hypersim", "scannet")
 
