@@ -10,19 +10,17 @@ import cv2
 import pytest
 import torch
 
-sys.path.insert(0, str(Path(__file__).parents[1] / "data"))
+from tests.data.synthetic_records import build_synthetic_records
 
-from synthetic_records import build_synthetic_records  # noqa: E402
-
-from usl.engine.checkpoint import CheckpointError, load_model, read_checkpoint  # noqa: E402
-from usl.engine.distributed import DistInfo  # noqa: E402
-from usl.engine.run_log import read_metrics  # noqa: E402
-from usl.engine.skip_guard import TooManySkippedSteps  # noqa: E402
-from usl.cli.train import main  # noqa: E402
-from usl.engine.train import Meter, Trainer, seed_everything  # noqa: E402
-from usl.config import load_config  # noqa: E402
-from usl.model.outputs import ObjectPredictions  # noqa: E402
-from usl.model.usl_model import USLModel  # noqa: E402
+from usl.engine.checkpoint import CheckpointError, load_model, read_checkpoint
+from usl.engine.distributed import DistInfo
+from usl.engine.run_log import read_metrics
+from usl.engine.skip_guard import TooManySkippedSteps
+from usl.cli.train import main
+from usl.engine.train import Meter, Trainer, seed_everything
+from usl.config import load_config
+from usl.model.outputs import ObjectPredictions
+from usl.model.usl_model import USLModel
 
 REPO = Path(__file__).parents[2]
 FAST = [

@@ -12,7 +12,7 @@ from typing import Callable
 
 import pytest
 
-from fake_scenes import SPEC, build_fake_scene, fake_frames
+from tests.records.fake_scenes import SPEC, build_fake_scene, fake_frames
 from pipelines.common import BuildOptions, ShardPlan, run_build
 from pipelines.hypersim.metadata import read_camera_csv, read_split_csv
 from pipelines.scene_shapes.cli import main as scene_shapes_main

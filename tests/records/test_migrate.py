@@ -10,7 +10,7 @@ from usl.records import migrate as migrate_module
 from usl.cli.records import main as records_cli
 from usl.records.migrate import migrate_dataset
 from usl.records.validate import validate_dataset
-from v1_writer import write_v1_copy
+from tests.records.v1_writer import write_v1_copy
 
 
 def all_rows(root):

@@ -6,7 +6,7 @@ import shutil
 import pyarrow.parquet as pq
 import pytest
 
-from fake_scenes import SPEC, build_fake_scene
+from tests.records.fake_scenes import SPEC, build_fake_scene
 from pipelines.common import BuildOptions, ShardPlan, run_build
 from usl.records import RecordsDataset
 from usl.errors import UslError

@@ -7,7 +7,14 @@ import h5py
 import numpy as np
 import pytest
 import torch
-from hypersim_fixture import CANONICAL_M, TILT_SHIFT_M, make_scene, render, write_exr, write_hdf5
+from tests.pipelines.hypersim.hypersim_fixture import (
+    CANONICAL_M,
+    TILT_SHIFT_M,
+    make_scene,
+    render,
+    write_exr,
+    write_hdf5,
+)
 
 from pipelines.hypersim.camera import (
     check_camera_model,

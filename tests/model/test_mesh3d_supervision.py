@@ -14,7 +14,7 @@ from usl.model.usl_model import USLModel
 from usl.records import RecordsDataset
 from usl.errors import UslError
 
-from test_usl_model import _true_meshes  # noqa: E402  (same folder: an independent camera-frame cast)
+from tests.model.test_usl_model import _true_meshes  # an independent camera-frame cast
 
 
 @pytest.fixture(scope="module")

@@ -15,7 +15,7 @@ import pytest
 import torch
 
 from data_specs import load_dataset_spec
-from eval_helpers import PerfectPredictor, build_dataset, render_truth
+from tests.evaluation.eval_helpers import PerfectPredictor, build_dataset, render_truth
 from usl.data.frames import CategoryIndex, decode_frame
 from usl.evaluation.baselines import spec_baselines
 from usl.evaluation.scene import EvalConfig

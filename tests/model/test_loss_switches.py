@@ -10,7 +10,7 @@ from usl.config import ConfigError, load_config
 from usl.data import SampleKey
 from usl.model.multiview_loss import multiview_silhouette_loss
 
-from test_usl_model import _true_meshes  # noqa: E402  (same folder: the samples' true cuboids)
+from tests.model.test_usl_model import _true_meshes  # the samples' true cuboids
 
 
 @pytest.fixture(scope="module")

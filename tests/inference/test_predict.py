@@ -12,7 +12,7 @@ import pytest
 import torch
 import trimesh
 
-from eval_helpers import tiny_checkpoint
+from tests.evaluation.eval_helpers import tiny_checkpoint
 from usl.evaluation.baselines import sphere_verts
 from usl.inference.gltf_scene import CAMERA_NODE, IMAGE_NODE
 from usl.inference.predict import camera_for, image_frame, model_detector, predict_images, read_image, read_intrinsics

@@ -6,7 +6,7 @@ import json
 
 import pytest
 
-from eval_helpers import build_dataset, tiny_checkpoint
+from tests.evaluation.eval_helpers import build_dataset, tiny_checkpoint
 from usl.evaluation.views import FurthestFraction, view_selection
 from usl.cli.evaluate import main
 from usl.evaluation.evaluate import dataset_spec

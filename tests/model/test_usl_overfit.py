@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from synthetic_records import build_synthetic_records
+from tests.data.synthetic_records import build_synthetic_records
 from usl.data import CategoryIndex, decode_frame
 from usl.data.dataset import decode_target_view
 from usl.evaluation.baselines import sphere_verts

@@ -14,18 +14,18 @@ from pathlib import Path
 
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 
-import numpy as np  # noqa: E402
-import pyrender  # noqa: E402
-import torch  # noqa: E402
-import trimesh  # noqa: E402
+import numpy as np
+import pyrender
+import torch
+import trimesh
 
-from data_specs import load_dataset_spec  # noqa: E402
-from pipelines.common import BuildOptions, ShardPlan, run_build  # noqa: E402
-from usl.evaluation.types import EvalInput  # noqa: E402
-from usl.geometry import ico_sphere  # noqa: E402
-from usl.geometry.cameras import look_at  # noqa: E402
-from usl.model.outputs import ObjectPredictions  # noqa: E402
-from usl.records import SceneRecord, encode_depth, encode_image, frame_row, make_instance, object_row  # noqa: E402
+from data_specs import load_dataset_spec
+from pipelines.common import BuildOptions, ShardPlan, run_build
+from usl.evaluation.types import EvalInput
+from usl.geometry import ico_sphere
+from usl.geometry.cameras import look_at
+from usl.model.outputs import ObjectPredictions
+from usl.records import SceneRecord, encode_depth, encode_image, frame_row, make_instance, object_row
 
 SIZE = 96
 FOCAL = 110.0
