@@ -29,7 +29,8 @@ from pathlib import Path
 import torch
 from tqdm import tqdm
 
-from usl.config import LayoutRange, load_config
+from usl.model.config import LayoutRange
+from usl.config import load_config
 from usl.data import CategoryIndex, MultiViewDataset, SampleKey
 from usl.evaluation.baselines import spec_baselines
 from usl.evaluation.scene import EvalConfig

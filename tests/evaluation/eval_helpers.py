@@ -163,7 +163,8 @@ def tiny_checkpoint(
 ) -> Path:
     """A randomly initialised tiny USL model saved like a training run (categories of scene_shapes by
     default), as if at ``iteration``, with config ``overrides``."""
-    from usl.config import LayoutRange, load_config, to_dict
+    from usl.model.config import LayoutRange
+    from usl.config import load_config, to_dict
     from usl.engine.checkpoint import write_run_checkpoint
     from usl.model.usl_model import USLModel
 

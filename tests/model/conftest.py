@@ -2,7 +2,8 @@
 
 import pytest
 
-from usl.config import LayoutRange, load_config
+from usl.model.config import LayoutRange
+from usl.config import load_config
 from usl.data import CategoryIndex, MultiViewDataset
 from usl.records import RecordsDataset
 

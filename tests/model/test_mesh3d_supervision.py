@@ -7,7 +7,8 @@ from dataclasses import replace
 import pytest
 import torch
 
-from usl.config import LayoutRange, load_config
+from usl.model.config import LayoutRange
+from usl.config import load_config
 from usl.data import CategoryIndex, MultiViewDataset, SampleKey
 from usl.model.mesh3d_loss import mesh_supervision_loss
 from usl.model.usl_model import USLModel

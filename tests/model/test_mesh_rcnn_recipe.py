@@ -4,7 +4,8 @@
 import pytest
 import torch
 
-from usl.config import LayoutRange, ShapeHeadConfig, load_config
+from usl.model.config import LayoutRange, ShapeHeadConfig
+from usl.config import load_config
 from usl.data import CategoryIndex, MultiViewDataset, SampleKey
 from usl.geometry import ico_sphere
 from usl.model.backbone import ShapeSpec

@@ -15,7 +15,7 @@ from tests.model.pretrained_layouts import (
     torchvision_maskrcnn,
     torchvision_resnet50,
 )
-from usl.config import LayoutHeadConfig, LayoutRange, ModelConfig, ShapeHeadConfig
+from usl.model.config import LayoutHeadConfig, LayoutRange, ModelConfig, ShapeHeadConfig
 from usl.model.backbone import IMAGENET_MEAN, IMAGENET_STD, BackboneConfig, FPNConfig, ResNetConfig
 from usl.model.detector import BoxHeadConfig, DetectorConfig, MaskHeadConfig, MaskRCNN, ROIHeadsConfig
 from usl.model.pretrained import WeightsError, init_detector, print_report

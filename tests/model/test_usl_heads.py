@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from usl.config import LayoutHeadConfig, LayoutRange, ShapeHeadConfig
+from usl.model.config import LayoutHeadConfig, LayoutRange, ShapeHeadConfig
 from usl.geometry import cube_to_frustum, ico_sphere, unique_edges
 from usl.geometry.cameras import project
 from usl.model.heads import GraphConv, LayoutHead, ShapeHead, project_cube_to_image, roimap_features, vertalign_features

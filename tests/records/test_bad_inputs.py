@@ -17,7 +17,7 @@ from pipelines.common import BuildOptions, ShardPlan, run_build
 from pipelines.hypersim.metadata import read_camera_csv, read_split_csv
 from pipelines.scene_shapes.cli import main as scene_shapes_main
 from usl.data import CategoryIndex, MultiViewDataset
-from usl.config import DataConfig
+from usl.data.config import DataConfig
 from usl.cli.evaluate import main as eval_main
 from usl.records import RecordsDataset, SceneRecord
 from usl.errors import UslError

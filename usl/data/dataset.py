@@ -14,7 +14,7 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from usl.config import DataConfig
+from usl.data.config import DataConfig
 from usl.records import RecordsDataset, decode_mask, decoding, frame_K, frame_pose
 from usl.errors import UslError
 
