@@ -10,7 +10,7 @@ import pytest
 from outputs import finished_files, one_line_error
 from small_build import build
 
-from usl.records.cli import main as records_main
+from usl.cli.records import main as records_main
 from usl.records.schema import shard_file
 
 SHARD = "val-00000"  # the shard the parts below disagree on

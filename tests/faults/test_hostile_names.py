@@ -21,7 +21,7 @@ from pipelines.hypersim.metadata import CAMERA_COLUMNS, SPLIT_COLUMNS
 from pipelines.scannet.cli import main as scannet_main
 from pipelines.scene_shapes.cli import main as scene_shapes_main
 from usl.records.names import check_name, name_problem
-from usl.records.errors import UslError
+from usl.errors import UslError
 
 HOSTILE = {
     "folder above": "../../x",

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from usl.records.errors import UslError
+from usl.errors import UslError
 from usl.records.storage_faults import storage_cause, storage_faults
 
 

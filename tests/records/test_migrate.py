@@ -7,12 +7,13 @@ import sys
 
 import pytest
 
-from usl.records import RecordsDataset, UslError
+from usl.records import RecordsDataset
+from usl.errors import UslError
 from usl.records import migrate as migrate_module
-from usl.records.cli import main as records_cli
+from usl.cli.records import main as records_cli
 from usl.records.migrate import migrate_dataset
 from usl.records.validate import validate_dataset
-from v1_writer import write_v1_copy
+from tests.records.v1_writer import write_v1_copy
 
 
 def all_rows(root):
@@ -135,7 +136,7 @@ def test_a_second_migration_is_refused_in_one_line_and_a_dead_ones_lock_is_taken
 def test_two_migrations_at_once_leave_one_migrated_folder(v1):
     runs = [
         subprocess.Popen(
-            [sys.executable, "-m", "usl.records.cli", "migrate", str(v1)], stderr=subprocess.PIPE, text=True
+            [sys.executable, "-m", "usl.cli.records", "migrate", str(v1)], stderr=subprocess.PIPE, text=True
         )
         for _ in range(2)
     ]

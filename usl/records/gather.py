@@ -18,7 +18,8 @@ from tqdm import tqdm
 
 from .build_state import BUILD_FILE, STATE_DIR, BuildState, identity_difference, read_build_file, shard_name
 from .claims import Owner
-from .errors import UslError
+from usl.errors import UslError
+
 from .manifest import SHARD_FILE_KEYS, build_manifest, check_relative, publish_dataset
 from .names import check_name
 from .schema import shard_file

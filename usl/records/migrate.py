@@ -25,7 +25,7 @@ from tqdm import tqdm
 from .atomic import write_json_atomic
 from .card import check_card_writable
 from .claims import sole_writer
-from .errors import UslError
+from usl.errors import UslError
 from .manifest import SHARD_FILE_KEYS, check_relative, dataset_metadata, load_manifest, publish_dataset
 from .schema import SCHEMA_VERSION, dataset_schema, read_metadata, shard_file
 from .shards import _TableStream, raise_if_invalid, verify_file

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from .errors import UslError
+from usl.errors import UslError
 
 MAX_NAME_BYTES = 255  # the longest file name Linux, macOS and Windows file systems take
 

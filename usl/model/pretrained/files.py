@@ -22,7 +22,7 @@ from typing import Any, Optional, Union
 import numpy as np
 import torch
 
-from usl.records.errors import UslError, one_line
+from usl.errors import UslError, one_line
 
 Tensor = torch.Tensor
 FORMATS = ("auto", "torchvision", "detectron2")
