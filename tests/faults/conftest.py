@@ -17,7 +17,6 @@ import io
 import os
 import re
 import subprocess
-import sys
 import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -27,8 +26,6 @@ import pyarrow.parquet as pq
 import pytest
 
 from usl.records.tempfiles import TMP_MARK
-
-sys.path.insert(0, str(Path(__file__).parent))
 
 _WRITE_FLAGS = os.O_WRONLY | os.O_RDWR | os.O_CREAT | os.O_APPEND
 

@@ -13,9 +13,9 @@ import shutil
 from pathlib import Path
 
 import pytest
-from outputs import bytes_lost, finished_files, one_line_error, temp_files, without_creator
+from tests.faults.outputs import bytes_lost, finished_files, one_line_error, temp_files, without_creator
 
-from small_build import build
+from tests.faults.small_build import build
 
 
 @pytest.fixture(scope="module")

@@ -7,8 +7,8 @@ import shutil
 from pathlib import Path
 
 import pytest
-from outputs import finished_files, one_line_error
-from small_build import build
+from tests.faults.outputs import finished_files, one_line_error
+from tests.faults.small_build import build
 
 from usl.cli.records import main as records_main
 from usl.records.schema import shard_file

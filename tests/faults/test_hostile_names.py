@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Callable
 
 import pytest
-from outputs import one_line_error
+from tests.faults.outputs import one_line_error
 
 from pipelines.hypersim.cli import main as hypersim_main
 from pipelines.hypersim.metadata import CAMERA_COLUMNS, SPLIT_COLUMNS

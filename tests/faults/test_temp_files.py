@@ -7,14 +7,14 @@ import subprocess
 import sys
 from pathlib import Path
 
-from outputs import temp_files
-from small_build import build
+from tests.faults.outputs import temp_files
+from tests.faults.small_build import build
 
+REPO = Path(__file__).parents[2]
 KILLED_WHILE_CREATING_THE_BUILD = """
 import os, signal, sys
-sys.path.insert(0, sys.argv[2])
 os.link = lambda *args, **kwargs: os.kill(os.getpid(), signal.SIGKILL)  # dies just before build.json exists
-from small_build import build
+from tests.faults.small_build import build
 build(sys.argv[1])
 """
 
@@ -22,8 +22,8 @@ build(sys.argv[1])
 def test_a_build_killed_before_build_json_leaves_a_temp_file_the_next_run_reaps(tmp_path):
     out = tmp_path / "ds"
     killed = subprocess.run(
-        [sys.executable, "-c", KILLED_WHILE_CREATING_THE_BUILD, str(out), str(Path(__file__).parent)],
-        env={**os.environ, "PYTHONPATH": os.environ.get("PYTHONPATH", "") + os.pathsep + os.getcwd()},
+        [sys.executable, "-c", KILLED_WHILE_CREATING_THE_BUILD, str(out)],
+        env={**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")])},
     )
     assert killed.returncode == -9
     assert [Path(p).name.split(".tmp-")[0] for p in temp_files(out)] == [".build.json"]
