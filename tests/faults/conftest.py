@@ -120,13 +120,13 @@ def write_faults(monkeypatch: pytest.MonkeyPatch) -> Callable[..., WriteFaults]:
             self._inner.flush()
 
     def failing_open(file: Any, mode: str = "r", *args: Any, **kwargs: Any) -> Any:
-        if isinstance(file, int) or not any(c in mode for c in "wax+"):
+        if isinstance(file, int) or not any(c in mode for c in "wax+") or str(file).startswith("/dev/"):
             return real_open(file, mode, *args, **kwargs)
         plan().hit("open for writing", file)
         return FailingFile(real_open(file, mode, *args, **kwargs), file)
 
     def failing_os_open(path: Any, flags: int, *args: Any, **kwargs: Any) -> int:
-        if flags & _WRITE_FLAGS:
+        if flags & _WRITE_FLAGS and not str(path).startswith("/dev/"):  # /dev/null is no disk
             plan().hit("os.open for writing", path)
         return real_os_open(path, flags, *args, **kwargs)
 

@@ -28,8 +28,8 @@ def hold_run_folder(run_dir: Path, info: DistInfo) -> Iterator[None]:
     if not info.is_main:
         yield
         return
-    with sole_writer(run_dir, COMMAND, token_dirs=(run_dir / CHECKPOINT_DIR,)):
-        with storage_faults(
-            run_dir, "the checkpoints written so far are kept", f"continue with {COMMAND} --resume --out {run_dir}"
-        ):
+    with storage_faults(
+        run_dir, "the checkpoints written so far are kept", f"continue with {COMMAND} --resume --out {run_dir}"
+    ):
+        with sole_writer(run_dir, COMMAND, token_dirs=(run_dir / CHECKPOINT_DIR,)):
             yield

@@ -91,8 +91,8 @@ def migrate_dataset(root: str | Path, progress: bool = False) -> MigrationSummar
     """Migrate ``root`` in place; one process at a time (another one's migration is a UslError)."""
     root = Path(root)
     load_manifest(root)  # not a dataset: refused before the folder is touched
-    with sole_writer(root, "usl-records migrate"):
-        with storage_faults(root, "the dataset is intact and the shards converted so far are kept"):
+    with storage_faults(root, "the dataset is intact and the shards converted so far are kept"):
+        with sole_writer(root, "usl-records migrate"):
             return _migrate(root, progress)
 
 
