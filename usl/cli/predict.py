@@ -57,6 +57,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser().parse_args(argv)
     from usl.inference.predict import model_detector, predict_images, read_intrinsics  # torch loads here
     from usl.errors import UslError
+    from usl.records.output_folder import output_folder
 
     try:
         K = read_intrinsics(args.k_file) if args.k_file else None
@@ -67,18 +68,19 @@ def main(argv: Sequence[str] | None = None) -> int:
                 f"image {missing[0]} does not exist" + (f" (and {len(missing) - 1} more)" if len(missing) > 1 else "")
             )
         detect, categories = model_detector(args.checkpoint, resolve_device(args.device))
-        results = predict_images(
-            detect,
-            args.images,
-            args.out,
-            categories,
-            K,
-            args.fov,
-            formats,
-            args.score_threshold,
-            "gltf" if args.axes == "opengl" else args.axes,
-            args.opencv_k,
-        )
+        with output_folder(Path(args.out), COMMAND, "the files of the images done so far are kept"):
+            results = predict_images(
+                detect,
+                args.images,
+                args.out,
+                categories,
+                K,
+                args.fov,
+                formats,
+                args.score_threshold,
+                "gltf" if args.axes == "opengl" else args.axes,
+                args.opencv_k,
+            )
     except UslError as exc:
         print(f"{COMMAND}: error: {exc}", file=sys.stderr)
         return 2

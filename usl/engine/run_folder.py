@@ -1,7 +1,7 @@
 """One training writes a run folder at a time, and a full disk there ends it in one line.
 
 Two trainings started on one ``--out`` would otherwise both run to the end, leaving the config of
-one beside the weights of the other. The main process holds the folder (``claims.sole_writer``:
+one beside the weights of the other. The main process holds the folder (``usl.records.output_folder``:
 the holder's host and pid, taken over once that process is gone); the other ranks of a
 distributed run write nothing there. Holding it also reaps what a killed training left: temp
 files of checkpoints, ``metrics.csv`` and ``curves.png`` named after their writer.
@@ -13,8 +13,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Iterator
 
-from usl.records.claims import sole_writer
-from usl.records.storage_faults import storage_faults
+from usl.records.output_folder import output_folder
 
 from .checkpoint import CHECKPOINT_DIR
 from .command import COMMAND
@@ -28,8 +27,6 @@ def hold_run_folder(run_dir: Path, info: DistInfo) -> Iterator[None]:
     if not info.is_main:
         yield
         return
-    with storage_faults(
-        run_dir, "the checkpoints written so far are kept", f"continue with {COMMAND} --resume --out {run_dir}"
-    ):
-        with sole_writer(run_dir, COMMAND, token_dirs=(run_dir / CHECKPOINT_DIR,)):
-            yield
+    kept, resume = "the checkpoints written so far are kept", f"continue with {COMMAND} --resume --out {run_dir}"
+    with output_folder(run_dir, COMMAND, kept, resume, token_dirs=(run_dir / CHECKPOINT_DIR,)):
+        yield

@@ -24,12 +24,11 @@ from tqdm import tqdm
 
 from .atomic import write_json_atomic
 from .card import check_card_writable
-from .claims import sole_writer
 from usl.errors import UslError
+from .output_folder import output_folder
 from .manifest import SHARD_FILE_KEYS, check_relative, dataset_metadata, load_manifest, publish_dataset
 from .schema import SCHEMA_VERSION, dataset_schema, read_metadata, shard_file
 from .shards import _TableStream, raise_if_invalid, verify_file
-from .storage_faults import storage_faults
 from .upgrade import upgrade_table
 
 STATE = ".migrate.json"
@@ -91,9 +90,8 @@ def migrate_dataset(root: str | Path, progress: bool = False) -> MigrationSummar
     """Migrate ``root`` in place; one process at a time (another one's migration is a UslError)."""
     root = Path(root)
     load_manifest(root)  # not a dataset: refused before the folder is touched
-    with storage_faults(root, "the dataset is intact and the shards converted so far are kept"):
-        with sole_writer(root, "usl-records migrate"):
-            return _migrate(root, progress)
+    with output_folder(root, "usl-records migrate", "the dataset is intact and the shards converted so far are kept"):
+        return _migrate(root, progress)
 
 
 def _read_state(path: Path) -> dict[str, Any]:
