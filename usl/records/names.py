@@ -40,5 +40,6 @@ def check_name(name: Any, what: str, where: object) -> str:
     """
     problem = name_problem(name)
     if problem is not None:
-        raise UslError(f"{where}: {what} {name!r} {problem}; it would become a path, so it must be a plain name")
+        shown = str(where) if str(where).isprintable() else repr(str(where))  # the error stays one line
+        raise UslError(f"{shown}: {what} {name!r} {problem}; it would become a path, so it must be a plain name")
     return name
