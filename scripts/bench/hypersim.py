@@ -22,6 +22,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from types import ModuleType
 
 import numpy as np
 
@@ -41,7 +42,7 @@ from usl.records import encode_depth, encode_image
 REPO = Path(__file__).resolve().parents[2]
 
 
-def _load_fixture_writer():
+def _load_fixture_writer() -> ModuleType:
     """The Hypersim test fixture's writer, loaded by path: a test helper, not part of the installed packages."""
     spec = importlib.util.spec_from_file_location(
         "hypersim_fixture", REPO / "tests/pipelines/hypersim/hypersim_fixture.py"
