@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # One learning-quality experiment: train a recipe on the main job's Scene-Shapes build and score it
 # on a build with another --seed (shape models and scenes the model never saw), next to the sphere
-# baselines. The experiments behind the `tiny` recipe (issue F) are runs of this script.
+# baselines. The experiments behind the `tiny` recipe (docs/experiments/) are runs of this script.
 #
 #   bash scripts/experiments/recipe_experiment.sh NAME [key=value ...]      # overrides go to usl-train
 #   USL_EXP_CONFIG=scene_shapes bash scripts/experiments/recipe_experiment.sh r50 optim.max_iter=2000

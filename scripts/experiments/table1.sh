@@ -73,21 +73,21 @@ python3 scripts/experiments/table1_plan.py --config "$CONFIG" ${ITERS:+--iters "
 echo "== builds: $TRAIN, $HELDOUT"
 experiment_builds "$DATA" "$SCENES" "$SCENES" --quiet
 
-SESSION=$OUT/.session  # this invocation's finished runs (their durations) and failures
-rm -rf "$SESSION" && mkdir -p "$SESSION" "$OUT/runs"
+THIS_RUN=$OUT/.this_run  # this invocation's finished runs (their durations) and failures
+rm -rf "$THIS_RUN" && mkdir -p "$THIS_RUN" "$OUT/runs"
 mapfile -t PLAN < "$OUT/plan.tsv"
 total=$(( $(cut -f3 "$OUT/plan.tsv" | grep -cx train || true) * ${#SEED_LIST[@]} ))
 
 progress() {  # one line per finished run: runs done, time so far, estimate of what is left
   local done timed left=""
   done=$(find "$OUT/runs" -path '*/eval/metrics.json' | wc -l)
-  timed=$(cat "$SESSION"/*.s 2>/dev/null | awk '{ s += $1; n++ } END { if (n) printf "%d", s / n }' || true)
+  timed=$(cat "$THIS_RUN"/*.s 2>/dev/null | awk '{ s += $1; n++ } END { if (n) printf "%d", s / n }' || true)
   if [[ -n $timed ]] && ((done < total)); then left=", ~$(( (total - done) * timed / JOBS / 60 + 1 )) min left"; fi
   echo "[$done/$total runs, $(( ($(date +%s) - start) / 60 )) min$left] $*" | tee -a "$OUT/progress.log"
 }
 
 fail() {  # RUN_ID MESSAGE LOG
-  touch "$SESSION/$1.failed"
+  touch "$THIS_RUN/$1.failed"
   progress "FAILED $2 (see $3):"
   tail -n 3 "$3" | sed 's/^/    /'
   return 1
@@ -134,7 +134,7 @@ run_one() {  # SLUG LABEL SEED OVERRIDES...: train (or resume), then score on th
     --device cpu --out "$run/eval.partial" --quiet "${EVAL_OPTS[@]}" > "$run/eval.log" 2>&1 \
     || fail "${slug}_$seed" "$label, seed $seed: usl-eval" "$run/eval.log" || return 1
   mv "$run/eval.partial" "$run/eval"
-  echo $(( $(date +%s) - began )) > "$SESSION/${slug}_$seed.s"
+  echo $(( $(date +%s) - began )) > "$THIS_RUN/${slug}_$seed.s"
   progress "$label, seed $seed: $what; scored in $(( $(date +%s) - scoring )) s: $(python3 scripts/experiments/table1_summary.py --run "$run/eval")"
 }
 
@@ -166,5 +166,5 @@ python3 scripts/experiments/table1_summary.py "$OUT"
   echo "Command: \`bash scripts/experiments/table1.sh${ARGS:+ $ARGS}\`; this invocation took $(( ($(date +%s) - start) / 60 )) min wall."
   sed 's/^/    /' "$OUT/plan.txt"
 } >> "$OUT/table1.md"
-failed=$(find "$SESSION" -name '*.failed' | wc -l)
+failed=$(find "$THIS_RUN" -name '*.failed' | wc -l)
 if ((failed)); then echo "table1.sh: $failed run(s) failed; the table holds the others (re-run to retry)" >&2; exit 1; fi
