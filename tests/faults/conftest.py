@@ -25,33 +25,15 @@ from typing import Any, Callable, Iterator
 import pyarrow.parquet as pq
 import pytest
 
+from tests.faults.tally import TALLY, Tally
 from usl.records.tempfiles import TMP_MARK
 
 _WRITE_FLAGS = os.O_WRONLY | os.O_RDWR | os.O_CREAT | os.O_APPEND
 
 
-@dataclass
-class Tally:
-    tried: int = 0
-    survived: int = 0
-    bytes_lost: int = 0
-    sites: set[str] = field(default_factory=set)
-
-
-TALLY = Tally()
-
-
 @pytest.fixture
 def fault_tally() -> Tally:
     return TALLY
-
-
-def pytest_terminal_summary(terminalreporter: Any) -> None:
-    if TALLY.tried:
-        terminalreporter.write_line(
-            f"faults: {TALLY.tried} tried at {len(TALLY.sites)} write sites, {TALLY.survived} survived, "
-            f"{TALLY.bytes_lost} bytes of finished output lost"
-        )
 
 
 def written(path: Any) -> str:
