@@ -1,7 +1,7 @@
 """A training whose disk fills up, that shares its run folder, or that starts from hostile files.
 
-Faults are injected at the first write of every kind a resumed training makes (checkpoint,
-``last_checkpoint``, ``config.yaml``, ``metrics.csv``, ``log.txt``, ...): the run stops with one
+Faults are injected at a write of each kind of file a resumed training makes (its run folder's
+lock, ``metrics.csv``, the checkpoint, ``last_checkpoint``, ``curves.png``): the run stops with one
 line saying what ran out and how to resume, the checkpoint it resumed from is untouched, and
 ``--resume`` then ends with the weights of a run that never failed, bit for bit.
 """
@@ -74,14 +74,12 @@ def reference(one_iteration: Path, tmp_path_factory: pytest.TempPathFactory) -> 
     return weights(out)
 
 
-# One write of every file a resumed training writes, each kind of operation at least once
-# (every write of a training, a few thousand, would take minutes; the build tests walk them all).
+# One write of each kind of file a resumed training writes (its few thousand writes, each followed
+# by a resume, would take many minutes; the build and evaluation tests walk every write).
 TRAINING_SITES = (
     "new folder (owners)",  # taking the run folder
-    "rename into place (config.yaml)",
     "file write (metrics.csv)",
     "file write (model_N.pt)",  # inside torch.save, which wraps the OSError in its own RuntimeError
-    "rename into place (model_N.pt)",
     "file write (last_checkpoint)",
     "rename into place (curves.png)",  # after the last checkpoint, while the run closes
 )
