@@ -17,6 +17,7 @@ import io
 import os
 import re
 import subprocess
+import threading
 import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -55,6 +56,8 @@ class WriteFaults:
         return self.fail_at is not None and len(self.sites) > self.fail_at
 
     def hit(self, site: str, path: Any = None) -> None:
+        if threading.current_thread() is not threading.main_thread():
+            return  # background writers (TensorBoard's) interleave at random: only this thread's order is fixed
         self.sites.append(f"{site} ({written(path)})" if path is not None else site)
         if self.fail_at is not None and len(self.sites) - 1 == self.fail_at:
             raise OSError(self.errno_, os.strerror(self.errno_), *([str(path)] if path is not None else []))

@@ -1,7 +1,8 @@
 """A training whose disk fills up, that shares its run folder, or that starts from hostile files.
 
-Faults are injected at a write of each kind of file a resumed training makes (its run folder's
-lock, ``metrics.csv``, the checkpoint, ``last_checkpoint``, ``curves.png``): the run stops with one
+ENOSPC is injected at the first write of every kind a resumed training makes (its run folder's
+lock, ``config.yaml``, ``metrics.csv``, ``log.txt``, the checkpoint, ``last_checkpoint``,
+``curves.png``; each operation on each), EACCES at one write of each file: the run stops with one
 line saying what ran out and how to resume, the checkpoint it resumed from is untouched, and
 ``--resume`` then ends with the weights of a run that never failed, bit for bit.
 """
@@ -74,9 +75,8 @@ def reference(one_iteration: Path, tmp_path_factory: pytest.TempPathFactory) -> 
     return weights(out)
 
 
-# One write of each kind of file a resumed training writes (its few thousand writes, each followed
-# by a resume, would take many minutes; the build and evaluation tests walk every write).
-TRAINING_SITES = (
+# EACCES at one write of each file; ENOSPC at the first write of every kind (operation and file).
+ACCESS_SITES = (
     "new folder (owners)",  # taking the run folder
     "file write (metrics.csv)",
     "file write (model_N.pt)",  # inside torch.save, which wraps the OSError in its own RuntimeError
@@ -85,32 +85,36 @@ TRAINING_SITES = (
 )
 
 
+@pytest.mark.parametrize(("code", "fault"), [(errno.ENOSPC, "no space left"), (errno.EACCES, "permission denied")])
 def test_every_kind_of_write_of_a_training_fails_cleanly(
-    one_iteration, reference, tmp_path, write_faults, capsys, fault_tally
+    code, fault, one_iteration, reference, tmp_path, write_faults, capsys, fault_tally
 ):
     out = tmp_path / "count"
     shutil.copytree(one_iteration, out)
     counting = write_faults()
     assert resume(out) == 0
     capsys.readouterr()
-    for site in TRAINING_SITES:
+    sites = dict.fromkeys(counting.sites) if code == errno.ENOSPC else ACCESS_SITES
+    assert set(ACCESS_SITES) <= set(counting.sites)
+    for site in sites:
         position = counting.sites.index(site)
         out = tmp_path / f"fault-{position}"
         shutil.copytree(one_iteration, out)
         before = finished_files(out)
-        plan = write_faults(position, errno.ENOSPC)
+        plan = write_faults(position, code)
         assert resume(out) == 2, f"{site} failed but the training went on"
         assert plan.fired
         write_faults()
         fault_tally.tried += 1
         fault_tally.sites.add(f"training: {site}")
         message = one_line_error(capsys.readouterr().err)
-        assert "no space left" in message and f"usl-train --resume --out {out}" in message, message
+        assert fault in message and f"usl-train --resume --out {out}" in message, message
         assert (out / CHECKPOINT_1).read_bytes() == before[CHECKPOINT_1]
         assert resume(out) == 0
         capsys.readouterr()
+        resumed = weights(out)
         for name, value in reference.items():
-            assert torch.equal(value, weights(out)[name]), (site, name)
+            assert torch.equal(value, resumed[name]), (site, name)
         assert not [p for p in (out / "checkpoints").iterdir() if ".tmp-" in p.name]
         lost = bytes_lost({CHECKPOINT_1: before[CHECKPOINT_1]}, finished_files(out))
         fault_tally.bytes_lost += lost
@@ -130,7 +134,8 @@ def test_a_full_disk_during_training_is_one_line_and_resume_finishes(
     assert f"{out}: no space left on the device (errno 28)" in message and "--resume" in message
     small_disk.remount(disk, f"size={8 * checkpoint + (1 << 22)}")
     assert resume(out) == 0
-    assert all(torch.equal(v, weights(out)[k]) for k, v in reference.items())
+    resumed = weights(out)
+    assert all(torch.equal(value, resumed[name]) for name, value in reference.items())
     fault_tally.survived += 1
 
 
@@ -178,7 +183,8 @@ def test_a_training_killed_while_saving_leaves_a_temp_file_that_resume_reaps(one
     assert [p.name for p in (out / "checkpoints").iterdir() if ".tmp-" in p.name]
     assert resume(out) == 0
     assert not [p.name for p in (out / "checkpoints").iterdir() if ".tmp-" in p.name]
-    assert all(torch.equal(v, weights(out)[k]) for k, v in reference.items())
+    resumed = weights(out)
+    assert all(torch.equal(value, resumed[name]) for name, value in reference.items())
 
 
 class RunsCode:
