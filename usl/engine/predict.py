@@ -23,7 +23,8 @@ import trimesh
 from usl.data.frames import FrameData
 from usl.engine.eval_model import ModelPredictor, load_checkpoint_model
 from usl.engine.eval_types import EvalInput
-from usl.engine.gltf_scene import object_meshes, prediction_scene
+from usl.engine.gltf_scene import object_meshes, prediction_scene, scene_glb
+from usl.engine.gltf_viewer import viewer_html
 from usl.engine.predict_cli import FORMATS
 from usl.engine.visualize import draw_boxes, palette, render_overlay, write_png
 from usl.geometry.cameras import intrinsics_from_fov
@@ -118,13 +119,11 @@ def write_meshes(
     for fmt in formats:
         path = stem.with_suffix(f".{fmt}")
         if fmt in ("glb", "html"):
-            scene = prediction_scene(pred, categories, image, K, axes)
+            glb = scene_glb(prediction_scene(pred, categories, image, K, axes), K, image.shape[1], image.shape[0])
             if fmt == "glb":
-                scene.export(path)
+                path.write_bytes(glb)
             else:
-                from trimesh.viewer.notebook import scene_to_html  # three.js bundled into the page: no network
-
-                path.write_text(scene_to_html(scene))
+                path.write_text(viewer_html(glb, title=stem.name))
         elif fmt == "ply":  # a PLY holds one mesh: all objects merged, each with its own vertex colour
             trimesh.util.concatenate(list(object_meshes(pred, categories, axes).dump())).export(path)
         else:
