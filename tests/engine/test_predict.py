@@ -13,6 +13,7 @@ import torch
 import trimesh
 
 from eval_helpers import tiny_checkpoint
+from usl.data.frames import CategoryIndex
 from usl.engine.baselines import sphere_verts
 from usl.engine.gltf_scene import CAMERA_NODE, IMAGE_NODE
 from usl.engine.predict import camera_for, image_frame, model_detector, predict_images, read_image, read_intrinsics
@@ -20,7 +21,7 @@ from usl.engine.predict_cli import main
 from usl.model.outputs import ObjectPredictions
 from usl.records import UslError
 
-CATEGORIES = ["chair", "sofa", "dining table"]
+CATEGORIES = CategoryIndex([{"id": 1, "name": "chair"}, {"id": 2, "name": "sofa"}, {"id": 3, "name": "dining table"}])
 
 
 @pytest.fixture(scope="module")
@@ -101,7 +102,7 @@ def test_glb_is_y_up_with_the_input_camera_image_plane_and_extras(image_path, tm
         for node in ("00_chair", "01_dining_table")
     }
     assert extras["00_chair"]["category"] == "chair" and extras["00_chair"]["score"] == pytest.approx(0.9)
-    assert extras["01_dining_table"]["category"] == "dining table" and extras["01_dining_table"]["category_id"] == 2
+    assert extras["01_dining_table"]["category"] == "dining table" and extras["01_dining_table"]["category_id"] == 3
 
 
 def _frame_for_fov(image_path):
@@ -187,7 +188,7 @@ def test_cli_with_tiny_checkpoint(image_path, checkpoint, tmp_path, capsys):
     scene = trimesh.load(out / "room.glb")
     objects = [name for name in scene.geometry if name != IMAGE_NODE]
     assert len(objects) == kept
-    assert all(name.split("_", 1)[1] in {c.replace(" ", "_") for c in categories} for name in objects)
+    assert all(name.split("_", 1)[1] in {c.replace(" ", "_") for c in categories.names} for name in objects)
 
 
 @pytest.mark.parametrize(

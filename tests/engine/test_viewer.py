@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 import torch
 
+from usl.data.frames import CategoryIndex
 from usl.engine.baselines import sphere_verts
 from usl.engine.gltf_scene import prediction_scene, scene_glb
 from usl.engine.gltf_viewer import viewer_html
@@ -23,6 +24,7 @@ pytestmark = pytest.mark.skipif(
     CHROMIUM is None, reason="headless Chromium is not installed (Debian: apt-get install -y chromium)"
 )
 IMAGE_RGB = (60, 90, 140)
+CATEGORIES = CategoryIndex([{"id": 1, "name": "chair"}, {"id": 2, "name": "sofa"}, {"id": 3, "name": "table"}])
 PAGE_BACKGROUND = (32, 32, 32)
 SCALE = 2  # screenshot pixels per image pixel
 
@@ -73,7 +75,7 @@ def test_page_shows_lit_objects_where_K_puts_them_over_the_image(tmp_path, cx):
     image = np.empty((height, width, 3), np.uint8)
     image[:] = IMAGE_RGB
     pred = predictions(K)
-    glb = scene_glb(prediction_scene(pred, ["chair", "sofa", "table"], image, K.numpy()), K.numpy(), width, height)
+    glb = scene_glb(prediction_scene(pred, CATEGORIES, image, K.numpy()), K.numpy(), width, height)
     page = tmp_path / "scene.html"
     page.write_text(viewer_html(glb))
     html = page.read_text()

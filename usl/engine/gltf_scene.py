@@ -6,8 +6,8 @@ y down, z forward). With ``axes="gltf"`` (the default of ``usl-predict``) points
 sits at the origin with the identity pose. With ``axes="opencv"`` the points stay as they are and
 the camera node carries the flip instead: the view through the camera is the same either way.
 
-The scene holds one node per object (``<index>_<category>``; ``extras``: category, category id,
-score, z, rho, box), a perspective camera matching the input view (``yfov`` from K and the image
+The scene holds one node per object (``<index>_<category>``; ``extras``: category name, the
+dataset's category id (as in its records, manifest and COCO export), score, z, rho, box), a perspective camera matching the input view (``yfov`` from K and the image
 height, ``aspectRatio`` from K and the width; glTF has no principal point, so the full K and the
 image size are kept in the camera's ``extras``: ``{"K": 3x3 rows, "image_size": [W, H]}``, OpenCV
 axes, pixel centres at +0.5) and the input image as a textured plane filling the camera's view
@@ -19,13 +19,14 @@ from __future__ import annotations
 import json
 import math
 import struct
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 import torch
 import trimesh
 from PIL import Image
 
+from usl.data.frames import CategoryIndex
 from usl.engine.visualize import palette
 from usl.geometry.cameras import opencv_to_opengl_camera, unproject
 from usl.model.outputs import ObjectPredictions
@@ -42,12 +43,12 @@ def axes_matrix(axes: str) -> np.ndarray:
     return opencv_to_opengl_camera()[:3, :3].numpy() if axes == "gltf" else np.eye(3)
 
 
-def object_names(pred: ObjectPredictions, categories: Sequence[str]) -> list[str]:
-    return [f"{n:02d}_{categories[int(l)].replace(' ', '_')}" for n, l in enumerate(pred.labels.tolist())]
+def object_names(pred: ObjectPredictions, categories: CategoryIndex) -> list[str]:
+    return [f"{n:02d}_{categories.names[int(l)].replace(' ', '_')}" for n, l in enumerate(pred.labels.tolist())]
 
 
 def object_meshes(
-    pred: ObjectPredictions, categories: Sequence[str], axes: str, material: bool = False
+    pred: ObjectPredictions, categories: CategoryIndex, axes: str, material: bool = False
 ) -> trimesh.Scene:
     """One named, coloured node per object, its category and score in the node's ``extras``.
 
@@ -77,8 +78,8 @@ def object_meshes(
         else:
             mesh.visual.vertex_colors = np.array([*color, 255], dtype=np.uint8)
         extras = {
-            "category": categories[int(label)],
-            "category_id": int(label),
+            "category": categories.names[int(label)],
+            "category_id": categories.ids[int(label)],  # the dataset's id, as in its records and COCO export
             "score": round(float(score), 6),
             "z": float(z),
             "rho": float(rho),
@@ -118,7 +119,7 @@ def image_plane(image: np.ndarray, K: np.ndarray, depth: float, axes: str) -> tr
 
 
 def prediction_scene(
-    pred: ObjectPredictions, categories: Sequence[str], image: np.ndarray, K: np.ndarray, axes: str = "gltf"
+    pred: ObjectPredictions, categories: CategoryIndex, image: np.ndarray, K: np.ndarray, axes: str = "gltf"
 ) -> trimesh.Scene:
     """Objects, the input camera and the image plane (behind the farthest object)."""
     scene = object_meshes(pred, categories, axes, material=True)

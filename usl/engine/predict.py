@@ -20,7 +20,9 @@ import numpy as np
 import torch
 import trimesh
 
-from usl.data.frames import FrameData
+from data_specs import DATASETS, load_dataset_spec
+from usl.config import ModelConfig
+from usl.data.frames import CategoryIndex, FrameData
 from usl.engine.eval_model import ModelPredictor, load_checkpoint_model
 from usl.engine.eval_types import EvalInput
 from usl.engine.gltf_scene import object_meshes, prediction_scene, scene_glb
@@ -107,7 +109,7 @@ class ImageResult:
 
 def write_meshes(
     pred: ObjectPredictions,
-    categories: Sequence[str],
+    categories: CategoryIndex,
     image: np.ndarray,
     K: np.ndarray,
     stem: Path,
@@ -136,7 +138,7 @@ def predict_images(
     detect: Detect,
     image_paths: Sequence[str | Path],
     out_dir: str | Path,
-    categories: Sequence[str],
+    categories: CategoryIndex,
     K: np.ndarray | None = None,
     fov_deg: float | None = None,
     formats: Sequence[str] = ("glb",),
@@ -164,14 +166,31 @@ def predict_images(
         files = write_meshes(pred, categories, image, K_image, out / stem, formats, axes) if len(pred) else []
         colors = palette(len(pred))
         overlay = render_overlay(image, pred.verts, pred.faces, frame.K, colors)
-        texts = [f"{categories[int(l)]} {float(s):.2f}" for l, s in zip(pred.labels.tolist(), pred.scores.tolist())]
+        texts = [
+            f"{categories.names[int(l)]} {float(s):.2f}" for l, s in zip(pred.labels.tolist(), pred.scores.tolist())
+        ]
         files.append(write_png(out / f"{stem}_overlay.png", draw_boxes(overlay, pred.boxes, texts, colors)))
         written[str(path)] = ImageResult(files, len(pred), best)
     return written
 
 
-def model_detector(checkpoint: str | Path, device: str) -> tuple[Detect, list[str]]:
-    """The checkpoint's model in detection mode, and its category names."""
+def model_detector(checkpoint: str | Path, device: str) -> tuple[Detect, CategoryIndex]:
+    """The checkpoint's model in detection mode, and its categories (names and dataset ids)."""
     model, config = load_checkpoint_model(checkpoint, device)
     predictor = ModelPredictor(model, int(config.data.max_size), "detections")
-    return (lambda frame: predictor([EvalInput(frame, {})])[0]), list(config.model.categories)
+    return (lambda frame: predictor([EvalInput(frame, {})])[0]), model_categories(config.model)
+
+
+def model_categories(model_config: ModelConfig) -> CategoryIndex:
+    """Names and dataset ids of the model's classes. Checkpoints written before ``model.category_ids``
+    existed take the ids of the dataset spec with the same category names."""
+    names = list(model_config.categories)
+    ids = list(model_config.category_ids)
+    if not ids:
+        specs = [load_dataset_spec(name)["categories"] for name in DATASETS]
+        ids = next(([int(c["id"]) for c in spec] for spec in specs if [c["name"] for c in spec] == names), [])
+    if len(ids) != len(names):
+        raise UslError(
+            f"the checkpoint's model.category_ids {ids} do not match its {len(names)} model.categories {names}"
+        )
+    return CategoryIndex([{"id": i, "name": n} for i, n in zip(ids, names)])
