@@ -64,8 +64,8 @@ def test_every_row_with_a_checkpoint(data, tmp_path, capsys):
     rows = [json.loads(line) for line in (out / "objects.jsonl").read_text().splitlines()]
     assert all(r["num_views"] == 1 for r in rows)  # 2 other views each, furthest half -> 1
     # one id space with the records: each id next to its name, both for the true and the predicted class
-    names = {int(c["id"]): c["name"] for c in json.loads((dataset / "manifest.json").read_text())["categories"]}
-    assert all(names[r["category_id"]] == r["category"] and names[r["label"]] == r["label_name"] for r in rows)
+    category = {int(c["id"]): c["name"] for c in json.loads((dataset / "manifest.json").read_text())["categories"]}
+    assert all(category[r["category_id"]] == r["category"] and category[r["label"]] == r["label_name"] for r in rows)
     assert {r["predictor"] for r in rows} >= {"USL", "USL w/ true depth"}
     assert len(list((out / "pictures").rglob("*.png"))) == len(names)
     table = (out / "table.md").read_text()
