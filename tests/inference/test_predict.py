@@ -64,13 +64,16 @@ def test_predict_writes_named_meshes_and_overlay(image_path, tmp_path):
     expected = fake_detector(_frame_for_fov(image_path)).verts.double().numpy()
     np.testing.assert_allclose(scene.geometry["00_chair"].vertices, expected[0] * GLTF_FROM_OPENCV, atol=1e-5)
     np.testing.assert_allclose(scene.geometry["01_dining_table"].vertices, expected[1] * GLTF_FROM_OPENCV, atol=1e-5)
-    assert len(trimesh.load(tmp_path / "room.obj").vertices) == 2 * expected.shape[1]  # objects only
+    obj = trimesh.load_scene(tmp_path / "room.obj")  # objects only, each its own mesh
+    assert sorted(obj.geometry) == ["00_chair", "01_dining_table"]
+    np.testing.assert_allclose(obj.geometry["00_chair"].vertices, expected[0] * GLTF_FROM_OPENCV, atol=1e-5)
     assert len(trimesh.load(tmp_path / "room.ply").vertices) == 2 * expected.shape[1]
     page = (tmp_path / "room.html").read_text()
     assert "<html" in page and "$B64GLTF" not in page and 'src="http' not in page  # three.js and the GLB inline
     overlay = cv2.imread(str(tmp_path / "room_overlay.png"))
-    assert overlay.shape == (80, 120, 3)
-    assert not np.array_equal(overlay, cv2.imread(str(image_path)))
+    assert overlay.shape == (512, 768, 3)  # the 120x80 input drawn at 512 on its short side
+    upscaled = cv2.resize(cv2.imread(str(image_path)), (768, 512), interpolation=cv2.INTER_CUBIC)
+    assert not np.array_equal(overlay, upscaled)
 
 
 def test_glb_is_y_up_with_the_input_camera_image_plane_and_extras(image_path, tmp_path):
@@ -213,3 +216,15 @@ def test_cli_bad_paths_give_one_line_errors(case, message, image_path, checkpoin
     assert rc == 2 and len(err.splitlines()) == 1
     assert err.startswith("usl-predict: error:")
     assert re.search(message, err), err
+
+
+def test_glb_camera_keeps_the_full_K_and_fov_auto_warns_without_exif(image_path, checkpoint, tmp_path):
+    K = np.array([[100.0, 0.5, 50.0], [0.0, 110.0, 30.0], [0.0, 0.0, 1.0]])  # off-centre, skewed
+    predict_images(fake_detector, [image_path], tmp_path, CATEGORIES, K=K)
+    glb = (tmp_path / "room.glb").read_bytes()
+    json_length = int.from_bytes(glb[12:16], "little")
+    camera = json.loads(glb[20 : 20 + json_length])["cameras"][0]
+    assert camera["extras"] == {"K": K.tolist(), "image_size": [120, 80]}
+    with pytest.warns(UserWarning, match="room.png has no EXIF FocalLengthIn35mmFilm"):
+        rc = main([str(image_path), "--checkpoint", str(checkpoint), "--fov", "auto", "--out", str(tmp_path / "a")])
+    assert rc == 0 and (tmp_path / "a" / "room_overlay.png").is_file()

@@ -72,7 +72,7 @@ def object_meshes(
         if material:
             mesh.visual = trimesh.visual.TextureVisuals(
                 material=trimesh.visual.material.PBRMaterial(
-                    baseColorFactor=[*color, 255], metallicFactor=0.0, roughnessFactor=0.8
+                    name=name, baseColorFactor=[*color, 255], metallicFactor=0.0, roughnessFactor=0.8
                 )
             )
         else:
