@@ -218,13 +218,16 @@ def test_cli_bad_paths_give_one_line_errors(case, message, image_path, checkpoin
     assert re.search(message, err), err
 
 
-def test_glb_camera_keeps_the_full_K_and_fov_auto_warns_without_exif(image_path, checkpoint, tmp_path):
+def test_glb_camera_keeps_the_full_K_and_fov_auto_warns_without_exif(image_path, checkpoint, tmp_path, capsys):
     K = np.array([[100.0, 0.5, 50.0], [0.0, 110.0, 30.0], [0.0, 0.0, 1.0]])  # off-centre, skewed
     predict_images(fake_detector, [image_path], tmp_path, CATEGORIES, K=K)
     glb = (tmp_path / "room.glb").read_bytes()
     json_length = int.from_bytes(glb[12:16], "little")
     camera = json.loads(glb[20 : 20 + json_length])["cameras"][0]
     assert camera["extras"] == {"K": K.tolist(), "image_size": [120, 80]}
-    with pytest.warns(UserWarning, match="room.png has no EXIF FocalLengthIn35mmFilm"):
-        rc = main([str(image_path), "--checkpoint", str(checkpoint), "--fov", "auto", "--out", str(tmp_path / "a")])
+    rc = main([str(image_path), "--checkpoint", str(checkpoint), "--fov", "auto", "--out", str(tmp_path / "a")])
     assert rc == 0 and (tmp_path / "a" / "room_overlay.png").is_file()
+    assert (
+        f"usl-predict: warning: {image_path} has no EXIF FocalLengthIn35mmFilm: assuming a 60 degree horizontal"
+        in capsys.readouterr().err
+    )

@@ -26,10 +26,12 @@ from __future__ import annotations
 
 import argparse
 import sys
+import warnings
 from pathlib import Path
 from typing import Sequence
 
 from usl.cli.common import common_options, make_parser, resolve_device
+from usl.inference.field_of_view import FieldOfViewWarning
 from usl.inference.formats import FORMATS
 
 COMMAND = "usl-predict"
@@ -88,21 +90,28 @@ def main(argv: Sequence[str] | None = None) -> int:
                 f"image {missing[0]} does not exist" + (f" (and {len(missing) - 1} more)" if len(missing) > 1 else "")
             )
         detect, categories = model_detector(args.checkpoint, resolve_device(args.device))
-        results = predict_images(
-            detect,
-            args.images,
-            args.out,
-            categories,
-            K,
-            args.fov,
-            formats,
-            args.score_threshold,
-            "gltf" if args.axes == "opengl" else args.axes,
-            args.opencv_k,
-        )
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always", FieldOfViewWarning)
+            results = predict_images(
+                detect,
+                args.images,
+                args.out,
+                categories,
+                K,
+                args.fov,
+                formats,
+                args.score_threshold,
+                "gltf" if args.axes == "opengl" else args.axes,
+                args.opencv_k,
+            )
     except UslError as exc:
         print(f"{COMMAND}: error: {exc}", file=sys.stderr)
         return 2
+    for warning in caught:  # one line per image whose field of view was assumed; others as Python shows them
+        if issubclass(warning.category, FieldOfViewWarning):
+            print(f"{COMMAND}: warning: {warning.message}", file=sys.stderr)
+        else:
+            warnings.warn_explicit(warning.message, warning.category, warning.filename, warning.lineno)
     for image, result in results.items():
         if args.quiet:
             continue

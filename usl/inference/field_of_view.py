@@ -19,6 +19,10 @@ EXIF_IFD = 0x8769
 FOCAL_LENGTH_35MM = 0xA405  # FocalLengthIn35mmFilm
 
 
+class FieldOfViewWarning(UserWarning):
+    """A field of view was assumed, not read: depths scale with how wrong it is."""
+
+
 def exif_fov_deg(path: str | Path, width: int, height: int) -> float | None:
     """Horizontal field of view (degrees) of a ``width`` x ``height`` photo from its EXIF, or None."""
     from PIL import Image, UnidentifiedImageError
@@ -41,6 +45,7 @@ def auto_fov_deg(path: str | Path | None, width: int, height: int) -> float:
         where = f"{path} has no EXIF FocalLengthIn35mmFilm" if path is not None else "an array carries no EXIF"
         warnings.warn(
             f"{where}: assuming a {DEFAULT_FOV_DEG:g} degree horizontal field of view (pass K or fov if known)",
+            FieldOfViewWarning,
             stacklevel=2,
         )
         return DEFAULT_FOV_DEG

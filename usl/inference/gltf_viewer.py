@@ -111,7 +111,6 @@ function init() {{
     controls.addEventListener("change", render);
     window.addEventListener("resize", fitCanvas);
     fitCanvas();
-    document.title += " (loaded)";
     animate();
   }}, undefined, function (error) {{
     document.body.insertAdjacentHTML("beforeend", "<pre style='color:#f66'>" + error + "</pre>");
