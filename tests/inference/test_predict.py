@@ -223,11 +223,24 @@ def test_glb_camera_keeps_the_full_K_and_fov_auto_warns_without_exif(image_path,
     predict_images(fake_detector, [image_path], tmp_path, CATEGORIES, K=K)
     glb = (tmp_path / "room.glb").read_bytes()
     json_length = int.from_bytes(glb[12:16], "little")
-    camera = json.loads(glb[20 : 20 + json_length])["cameras"][0]
-    assert camera["extras"] == {"K": K.tolist(), "image_size": [120, 80]}
+    tree = json.loads(glb[20 : 20 + json_length])
+    assert tree["cameras"][0]["extras"] == {"K": K.tolist(), "image_size": [120, 80]}
+    # the image plane is unlit, in every viewer that knows the extension; the objects are shaded
+    unlit = [
+        n["name"]
+        for n in tree["nodes"]
+        for m in _node_materials(tree, n)
+        if "KHR_materials_unlit" in m.get("extensions", {})
+    ]
+    assert unlit == [IMAGE_NODE] and "KHR_materials_unlit" in tree["extensionsUsed"]
     rc = main([str(image_path), "--checkpoint", str(checkpoint), "--fov", "auto", "--out", str(tmp_path / "a")])
     assert rc == 0 and (tmp_path / "a" / "room_overlay.png").is_file()
     assert (
         f"usl-predict: warning: {image_path} has no EXIF FocalLengthIn35mmFilm: assuming a 60 degree horizontal"
         in capsys.readouterr().err
     )
+
+
+def _node_materials(tree, node):
+    primitives = tree["meshes"][node["mesh"]]["primitives"] if "mesh" in node else []
+    return [tree["materials"][p["material"]] for p in primitives if "material" in p]

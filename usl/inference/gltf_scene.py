@@ -144,18 +144,27 @@ def camera_extras(K: np.ndarray, width: int, height: int) -> dict[str, Any]:
 
 
 def scene_glb(scene: trimesh.Scene, K: np.ndarray, width: int, height: int) -> bytes:
-    """The scene as GLB bytes, with ``camera_extras`` on its camera (trimesh writes no camera extras)."""
-    return with_camera_extras(scene.export(file_type="glb"), camera_extras(K, width, height))
+    """The scene as GLB bytes, with what trimesh does not write: ``camera_extras`` on the camera, and
+    the image plane's material unlit (``KHR_materials_unlit``), so viewers show the image's own
+    colours rather than shading it by their lights."""
+    return finish_glb(scene.export(file_type="glb"), camera_extras(K, width, height))
 
 
-def with_camera_extras(glb: bytes, extras: dict[str, Any]) -> bytes:
-    """A GLB with ``extras`` added to its first camera: the JSON chunk is rewritten, the binary one kept."""
+def finish_glb(glb: bytes, extras: dict[str, Any]) -> bytes:
+    """``extras`` added to the first camera, the ``IMAGE_NODE`` mesh's materials made unlit: the JSON
+    chunk is rewritten, the binary one kept."""
     magic, version, _ = struct.unpack_from("<4sII", glb, 0)
     json_length, json_type = struct.unpack_from("<I4s", glb, 12)
     if magic != b"glTF" or version != 2 or json_type != b"JSON":
         raise ValueError("not a glTF 2.0 binary with its JSON chunk first")
     tree = json.loads(glb[20 : 20 + json_length])
     tree["cameras"][0].setdefault("extras", {}).update(extras)
+    for node in tree["nodes"]:
+        if node.get("name") == IMAGE_NODE and "mesh" in node:
+            for primitive in tree["meshes"][node["mesh"]]["primitives"]:
+                material = tree["materials"][primitive["material"]]
+                material.setdefault("extensions", {})["KHR_materials_unlit"] = {}
+                tree["extensionsUsed"] = sorted({*tree.get("extensionsUsed", []), "KHR_materials_unlit"})
     text = json.dumps(tree, separators=(",", ":")).encode()
     text += b" " * (-len(text) % 4)  # chunks are 4-byte aligned; JSON pads with spaces
     rest = glb[20 + json_length :]

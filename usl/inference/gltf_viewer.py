@@ -9,8 +9,8 @@ from a corner; this page instead
 * opens at the input camera's viewpoint, with the full K of the camera's ``extras``
   (``usl.inference.gltf_scene.camera_extras``; an off-centre principal point becomes a view offset)
   and the canvas at the image's aspect ratio, so the objects overlay the image as in the input;
-* lights the objects with an ambient light and a head light that moves with the camera;
-* shows the input image unlit (its own colours, whatever the lights), and
+* lights the objects with an ambient light and a head light that moves with the camera (the
+  image plane's material is unlit in the GLB: it shows the image's own colours), and
 * orbits (drag), zooms (wheel) and pans (right drag) about the objects' centre.
 """
 
@@ -85,14 +85,9 @@ function init() {{
     camera.up.set(0, 1, 0).applyQuaternion(camera.quaternion);
     const objects = new THREE.Box3();
     gltf.scene.traverse(function (node) {{
-      if (!node.isMesh) return;
-      let isImage = false;
+      let isImage = node.name === IMAGE_NODE;
       node.traverseAncestors(function (a) {{ if (a.name === IMAGE_NODE) isImage = true; }});
-      if (node.name === IMAGE_NODE || isImage) {{
-        node.material = new THREE.MeshBasicMaterial({{map: node.material.map, side: THREE.DoubleSide}});
-      }} else {{
-        objects.expandByObject(node);
-      }}
+      if (node.isMesh && !isImage) objects.expandByObject(node);
     }});
     scene.add(new THREE.AmbientLight(0xffffff, 0.45));
     const headlight = new THREE.DirectionalLight(0xffffff, 0.9);
