@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
-# One-time, idempotent set-up of a fresh machine: offscreen OpenGL (EGL/Mesa), torch (CPU build
-# where no GPU build is wanted), and usl itself in editable mode with its test extras.
+# One-time, idempotent set-up of a fresh machine: offscreen OpenGL (EGL/Mesa), headless Chromium,
+# torch (CPU build where no GPU build is wanted), and usl itself in editable mode with its test extras.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -9,6 +9,13 @@ if ! ldconfig -p | grep -q 'libEGL_mesa.so'; then
   SUDO=""; [ "$(id -u)" -ne 0 ] && SUDO="sudo"
   $SUDO apt-get update -qq
   DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq libegl1 libegl-mesa0 libgl1-mesa-dri libgles2 >/dev/null
+fi
+
+if ! command -v chromium >/dev/null; then  # headless browser for the HTML viewer's test (~1.5 min, ~350 MB)
+  echo "[setup] installing Debian's chromium"
+  SUDO=""; [ "$(id -u)" -ne 0 ] && SUDO="sudo"
+  $SUDO apt-get update -qq
+  DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq chromium >/dev/null
 fi
 
 PY=${PYTHON:-python3}
