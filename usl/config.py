@@ -11,16 +11,16 @@ is saved in the run folder and in each checkpoint.
 
 from __future__ import annotations
 
-import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping, Optional, Sequence
+from typing import Any, Mapping, Sequence
 
 import yaml
 
 from usl.config_io import (  # noqa: F401  (re-exported: usl.config is where callers import them)
     ConfigError,
     deep_merge,
+    drop_removed_keys,
     from_dict,
     parse_overrides,
     read_yaml_config,
@@ -36,30 +36,6 @@ CONFIG_DIR = Path(__file__).resolve().parent / "configs"
 
 
 @dataclass
-class ColorJitterConfig:
-    """Random photometric changes of the input image only (``usl.data.photometric``; PIL's
-    ``ImageEnhance`` and torchvision's ``ColorJitter`` definitions), each factor drawn uniformly per
-    sample. The loss's targets are masks and poses, which colour does not change, so the views'
-    geometry stays exact. All 0 (the paper): the image is untouched."""
-
-    brightness: float = 0.0  # blend with black by a factor in [1 - b, 1 + b]
-    contrast: float = 0.0  # blend with the image's mean grey by a factor in [1 - c, 1 + c]
-    saturation: float = 0.0  # blend with the image's grey version by a factor in [1 - s, 1 + s]
-    hue: float = 0.0  # HSV hue turned by an angle in [-h, h] turns (0.5: any hue)
-
-    def __post_init__(self) -> None:
-        for name in ("brightness", "contrast", "saturation"):
-            if not 0.0 <= getattr(self, name) <= 1.0:
-                raise ConfigError(f"data.color_jitter.{name} must be in [0, 1], got {getattr(self, name)}")
-        if not 0.0 <= self.hue <= 0.5:
-            raise ConfigError(f"data.color_jitter.hue must be in [0, 0.5], got {self.hue}")
-
-    @property
-    def enabled(self) -> bool:
-        return any((self.brightness, self.contrast, self.saturation, self.hue))
-
-
-@dataclass
 class DataConfig:
     root: str = ""  # records folder (docs/design.md §3)
     train_split: str = "train"  # split the model trains on
@@ -72,9 +48,6 @@ class DataConfig:
     # Probability of mirroring a training sample left-right: all its views, as one reflection of
     # the world (usl.data.mirror), so the multi-view geometry stays exact. 0: never (the paper).
     flip_prob: float = 0.0
-    # Random brightness, contrast, saturation and hue of the input image (ColorJitterConfig). Off:
-    # the paper; on Scene-Shapes, whose colours are random already, it measured no gain (README).
-    color_jitter: ColorJitterConfig = field(default_factory=ColorJitterConfig)
     num_workers: int = 2  # data loader processes (0: load in the training process)
     verify: str = "size"  # shard checks on open: "size" (a stat) or "sha256" (reads each shard once more)
 
@@ -123,7 +96,6 @@ class ShapeHeadConfig:
     # [p2] (the paper's FPN recipes) or [res2, res3, res4, res5] (Mesh R-CNN's ShapeNet model, R50);
     # "image" names the normalised input image itself (3 channels, stride 1), e.g. [p2, image]
     features: tuple[str, ...] = ("p2",)
-    feature: Optional[str] = None  # deprecated: one map, forwarded to features (old configs and checkpoints)
     # Mesh R-CNN: each stage's last GraphConv output is concatenated into the next stage's first
     # GraphConv input (its width grows by hidden_dim); False: stages share only the vertex positions
     pass_features: bool = False
@@ -135,27 +107,14 @@ class ShapeHeadConfig:
     # Bottleneck Linear init: "torch" (PyTorch's default, uniform with std 1/sqrt(3 fan_in)) |
     # "normal" (N(0, 0.01²), bias 0: Mesh R-CNN's)
     bottleneck_init: str = "torch"
-    # A learned template per category, added to the ico-sphere before the first stage: the
-    # category mean shape of category-specific reconstruction (CMR, Kanazawa et al. 2018), so the
-    # stages refine a table- or sofa-like mesh instead of growing it from a sphere. False: the
-    # paper's (and Mesh R-CNN's) class-agnostic sphere.
-    category_templates: bool = False
     # Width of a global deformation stage before the refinement stages: an MLP from the object's
     # RoIAlign features (the layout head's pooled input, flattened) to an offset of every vertex,
     # V_g = sphere + tanh(MLP), each vertex with output weights of its own (CMR's shape decoder).
     # A refinement stage sees one pixel per vertex and ~6 graph hops; this stage sees the whole
-    # object at once, so an offset may follow from what the image shows anywhere in the box. On
-    # unseen scenes it took tiny's Chamfer 0.071 -> 0.049 and F1 48 -> 62 (README). It learns
-    # stably at a tenth of the rate (optim.lr_mult={shape_head.global_mlp: 0.1}, tiny's): at the full
-    # rate one seed of two saturated its tanh within 200 iterations. 0: the paper's head.
+    # object at once, so an offset may follow from what the image shows anywhere in the box. It
+    # learns stably at a tenth of the rate (optim.lr_mult={shape_head.global_mlp: 0.1}, tiny's): at
+    # the full rate its tanh can saturate within a few hundred iterations. 0: the paper's head.
     global_stage: int = 0
-    # The global stage's offsets as a combination of the ico-sphere's `global_basis` smoothest
-    # fields (its graph Laplacian's first eigenvectors, the mesh's low-degree spherical harmonics;
-    # 49 ~ degrees 0-6) instead of one free offset per vertex: the stage can then only bend the
-    # sphere smoothly, and the refinement stages add the detail. On unseen scenes 25 made tiny's
-    # meshes smooth (normal consistency 0.75 -> 0.35) but cost Chamfer and F1 (README), so no
-    # recipe sets it. 0: one offset per vertex.
-    global_basis: int = 0
 
     def __post_init__(self) -> None:
         _check_choice("model.shape.sampler", self.sampler, ("roimap", "vertalign"))
@@ -164,20 +123,6 @@ class ShapeHeadConfig:
         _check_positive("model.shape.num_stages", self.num_stages)
         if self.global_stage < 0:
             raise ConfigError(f"model.shape.global_stage: must be >= 0 (0: none), got {self.global_stage}")
-        num_verts = 10 * 4**self.ico_level + 2
-        if self.global_basis and not (self.global_stage and 0 < self.global_basis <= num_verts):
-            raise ConfigError(
-                f"model.shape.global_basis={self.global_basis}: needs model.shape.global_stage > 0 and at most "
-                f"{num_verts} fields (the level-{self.ico_level} ico-sphere's vertices); 0: one offset per vertex"
-            )
-        if self.feature is not None:  # the old single-map key, forwarded so old configs keep loading
-            if self.features not in (ShapeHeadConfig.features, (self.feature,)):
-                raise ConfigError(
-                    f"model.shape.feature={self.feature!r} and model.shape.features={list(self.features)} disagree: "
-                    "set model.shape.features only (model.shape.feature is deprecated)"
-                )
-            warnings.warn("model.shape.feature is deprecated: use model.shape.features (a list)", FutureWarning)
-            self.features, self.feature = (self.feature,), None
         if not self.features or len(set(self.features)) != len(self.features):
             raise ConfigError(f"model.shape.features: need distinct backbone map names, got {list(self.features)}")
 
@@ -206,11 +151,6 @@ class ModelConfig:
     def __post_init__(self) -> None:
         _check_choice("model.init_format", self.init_format, INIT_FORMATS)
         resnet = self.detector.backbone.resnet
-        if resnet.weights:  # the old backbone-only key, forwarded so old commands keep working
-            if self.init_weights and self.init_weights != resnet.weights:
-                raise ConfigError("set model.init_weights only (model.detector.backbone.resnet.weights is deprecated)")
-            warnings.warn("model.detector.backbone.resnet.weights is deprecated: use model.init_weights", FutureWarning)
-            self.init_weights, resnet.weights = resnet.weights, None
         if resnet.stride_in_1x1 is None and self.init_weights:  # the ResNet variant the weights were trained as
             resnet.stride_in_1x1 = trained_stride_in_1x1(self.init_weights, self.init_format)
 
@@ -261,18 +201,13 @@ class LossConfig:
     dist_schedule: PiecewiseLinear = field(default_factory=PiecewiseLinear)
     mesh_points: int = 1000  # points sampled on each mesh surface for l_dist
     mask_points: int = 1000  # points sampled in each true silhouette for l_dist
-    # True: l_dist's mesh points are the surface samples and every vertex. Samples fall by area, so
-    # a thin spike is rarely sampled and, in views where the IoU gate keeps l_xent out, goes
-    # unpunished; each vertex projected outside the silhouette is pulled back in. The vertices also
-    # weigh in l_dist's mean (tiny: 162 of 462 points). Off everywhere: it did not help (README).
-    dist_vertices: bool = False
     # The IoU gate of Eq. 4, the key Table 1's ablations vary: with loss.xent_gate=iou, l_xent applies
     # to an (object, view) pair only when IoU(rendered > 0.5, true) exceeds this (paper: 0.5).
     iou_threshold: float = 0.5
     # Which pairs l_xent applies to: "iou" (paper Eq. 4, also for Table 1's "w/o l_dist" row: only
-    # l_dist is removed) or "all" (no gate). Without l_dist neither trains at CPU scale (README):
-    # gated, other-view pairs fall below the threshold and z, rho get no gradient; ungated, l_xent
-    # drives z and rho to the ends of their range, where the silhouettes vanish.
+    # l_dist is removed) or "all" (no gate: to ablate Eq. 4's gate). Without l_dist neither trains at
+    # CPU scale: gated, other-view pairs fall below the threshold and z, rho get no gradient;
+    # ungated, l_xent drives z and rho to the ends of their range, where the silhouettes vanish.
     xent_gate: str = "iou"
     # The gate exists because l_xent says nothing about layout when silhouettes do not overlap.
     # In the input view they always do: the 2D box fixes the projection whatever z and rho are.
@@ -309,7 +244,9 @@ class OptimConfig:
     warmup_iters: int = 0  # linear warm-up length (0: none)
     warmup_factor: float = 0.001  # rate at iteration 0 of the warm-up, as a fraction of lr
     max_iter: int = 1000  # iterations to train
-    clip_grad_norm: float = 0.0  # 0 disables clipping (the norm is still checked for NaN/inf)
+    # Clip the whole gradient's norm at this, against rare gradient spikes after which a run can stall
+    # (tiny's global stage sends them). 0 disables clipping (the norm is still checked for NaN/inf).
+    clip_grad_norm: float = 0.0
     # Learning-rate factors by parameter-name prefix, e.g. {shape_head: 10}: the longest matching
     # prefix wins, other parameters keep lr. Empty: one rate for the whole model (the paper).
     lr_mult: dict[str, float] = field(default_factory=dict)
@@ -431,8 +368,27 @@ def _applies(base: Mapping[str, Any], override: str) -> bool:
     return True
 
 
+# Options measured, found not to help and removed (docs/experiments/removed-options.md names the commit
+# that has them), with what to do instead. Every saved config (run folder, checkpoint) carries every
+# field, so one written before the removal holds them at their "off" value, and still loads.
+_INSTEAD = {
+    **{
+        f"data.color_jitter.{name}": "the input images are used as stored"
+        for name in ("brightness", "contrast", "saturation", "hue")
+    },
+    "model.shape.category_templates": "every object starts from the ico-sphere",
+    "model.shape.global_basis": "the global stage predicts one offset per vertex",
+    "model.shape.feature": "set model.shape.features, a list of map names (e.g. [p2])",
+    "model.detector.backbone.resnet.weights": "set model.init_weights (a whole-detector or ResNet checkpoint)",
+    "loss.dist_vertices": "l_dist uses the surface samples only",
+    "loss.weights.depth_laplacian": "use loss.weights.laplacian or loss.weights.normal",
+}
+REMOVED_OPTIONS = {key: f"{instead} (docs/experiments/removed-options.md)" for key, instead in _INSTEAD.items()}
+
+
 def config_from_dict(data: Mapping[str, Any], where: str = "config") -> Config:
     """A full ``Config`` from a (possibly partial) nested dict over the defaults."""
+    data = drop_removed_keys(data, REMOVED_OPTIONS, where)
     defaults = to_dict(Config())
     model = data.get("model") if isinstance(data.get("model"), Mapping) else {}
     preset = model.get("detector_preset", "default")

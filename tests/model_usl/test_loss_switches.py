@@ -163,24 +163,6 @@ def test_soft_iou_joins_l_xent_under_its_gate_and_pulls_a_shrunk_mesh_out(setup)
     assert shut.item() == 0.0  # the gate (input view included here) lets no pair in
 
 
-def test_dist_vertices_pulls_back_a_spike_that_area_samples_miss(setup):
-    """``loss.dist_vertices``: a spike (a sliver face out to a far tip) has next to no area, so l_dist's
-    surface samples miss it and its tip gets no gradient; counted as a point, the tip is pulled back
-    toward the object."""
-    loss, sample, verts, faces = setup
-    corner, centre = verts[:, 0], verts.mean(dim=1)
-    tip = corner + (corner - centre)  # as far outside the cuboid as its centre is inside
-    sliver = corner + 1e-5 * (verts[:, 1] - corner)
-    spiked = torch.cat([verts, tip[:, None], sliver[:, None]], dim=1)
-    spiked_faces = torch.cat([faces, torch.tensor([[0, verts.shape[1], verts.shape[1] + 1]])])
-    _, without = _grad(_with(loss, dist_vertices=False), spiked, spiked_faces, sample, "dist")
-    _, with_vertices = _grad(_with(loss, dist_vertices=True), spiked, spiked_faces, sample, "dist")
-    tip_index = verts.shape[1]
-    assert without[:, tip_index].abs().max() < 1e-6 * without.abs().max()
-    outward = tip - centre
-    assert ((with_vertices[:, tip_index] * outward).sum(dim=1) > 0).all()  # descent moves every tip inward
-
-
 def test_bad_switch_values_are_config_errors():
     with pytest.raises(ConfigError, match="loss.xent_gate"):
         load_config("tiny", ["loss.xent_gate=sometimes"])

@@ -168,29 +168,6 @@ def test_shape_head_shapes_init_and_gradients(sampler):
     assert head.stages[1].bottleneck.weight.grad.abs().sum() > 0
 
 
-def test_category_templates_start_as_the_sphere_and_learn_per_category():
-    torch.manual_seed(0)
-    cfg = ShapeHeadConfig(ico_level=1, num_stages=2, hidden_dim=16, category_templates=True)
-    head = ShapeHead({"p2": ShapeSpec(8, 4)}, cfg, num_classes=3)
-    plain = ShapeHead({"p2": ShapeSpec(8, 4)}, ShapeHeadConfig(ico_level=1, num_stages=2, hidden_dim=16))
-    plain.load_state_dict({k: v for k, v in head.state_dict().items() if k != "templates"})
-    fmap = torch.randn(1, 8, 16, 16)
-    boxes = [torch.tensor([[4.0, 4.0, 40.0, 30.0], [10.0, 10.0, 60.0, 60.0]])]
-    labels = torch.tensor([2, 0])
-    torch.testing.assert_close(head({"p2": fmap}, boxes, labels).verts, plain({"p2": fmap}, boxes).verts)
-    with torch.no_grad():
-        head.templates[2].fill_(0.25)
-    out = head({"p2": fmap}, boxes, labels).verts
-    sphere, _ = ico_sphere(1)
-    torch.testing.assert_close(out[0], sphere + 0.25)  # the offsets are still zero: V_0 = sphere + template
-    torch.testing.assert_close(out[1], sphere)
-    out.square().sum().backward()
-    assert head.templates.grad[1].abs().sum() == 0  # no object of category 1 in the batch
-    assert head.templates.grad[0].abs().sum() > 0 and head.templates.grad[2].abs().sum() > 0
-    with pytest.raises(ValueError, match="labels"):
-        head({"p2": fmap}, boxes)
-
-
 def test_global_stage_starts_as_the_sphere_and_deforms_each_vertex_from_the_roi_features():
     torch.manual_seed(0)
     cfg = ShapeHeadConfig(ico_level=1, num_stages=1, hidden_dim=16, global_stage=32)
@@ -219,35 +196,3 @@ def test_global_stage_starts_as_the_sphere_and_deforms_each_vertex_from_the_roi_
         head({"p2": fmap}, boxes)
     with pytest.raises(ValueError, match="roi_dim"):
         ShapeHead({"p2": ShapeSpec(8, 4)}, cfg)
-
-
-def test_global_basis_bends_the_sphere_within_its_smooth_fields_and_checkpoints_carry_the_basis():
-    torch.manual_seed(0)
-    cfg = ShapeHeadConfig(ico_level=1, num_stages=1, hidden_dim=16, global_stage=32, global_basis=4)
-    head = ShapeHead({"p2": ShapeSpec(8, 4)}, cfg, roi_dim=8 * 3 * 3)
-    assert head.global_mlp[-1].out_features == 3 * 4  # coefficients, not one offset per vertex
-    fmap, roi = torch.randn(1, 8, 16, 16), torch.randn(2, 8, 3, 3)
-    boxes = [torch.tensor([[4.0, 4.0, 40.0, 30.0], [10.0, 10.0, 60.0, 60.0]])]
-    sphere, _ = ico_sphere(1)
-    torch.testing.assert_close(head({"p2": fmap}, boxes, roi=roi).verts, sphere.expand(2, -1, -1))
-    torch.nn.init.normal_(head.global_mlp[-1].weight, std=0.3)
-    out = head({"p2": fmap}, boxes, roi=roi)
-    # fields of degree <= 1 are a constant and (nearly) x, y, z: the offsets are an affine map of
-    # the sphere's points, so the stage can move, stretch and shear the sphere, not dent it
-    affine = torch.cat([sphere, torch.ones(len(sphere), 1)], dim=1)
-    for offset in out.offsets[0]:
-        fit = affine @ torch.linalg.lstsq(affine, offset).solution
-        assert (fit - offset).abs().max() < 0.05 * offset.abs().max()
-    assert (out.offsets[0].abs().max(dim=1).values > 0.1).all()  # and it does move them
-    # the basis is saved with the weights and a loaded head uses the checkpoint's
-    state = head.state_dict()
-    state["global_basis"] = -state["global_basis"]
-    loaded = ShapeHead({"p2": ShapeSpec(8, 4)}, cfg, roi_dim=8 * 3 * 3)
-    loaded.load_state_dict(state)
-    torch.testing.assert_close(loaded.global_basis, -head.global_basis)
-    with torch.no_grad():
-        head.global_basis.neg_()
-    torch.testing.assert_close(loaded({"p2": fmap}, boxes, roi=roi).verts, head({"p2": fmap}, boxes, roi=roi).verts)
-    empty = head({"p2": fmap}, [torch.zeros(0, 4)], roi=torch.zeros(0, 8, 3, 3))
-    assert empty.verts.shape == (0, len(sphere), 3)
-    assert "global_basis" not in ShapeHead({"p2": ShapeSpec(8, 4)}, ShapeHeadConfig(ico_level=1)).state_dict()
