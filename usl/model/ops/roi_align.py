@@ -37,6 +37,10 @@ BoxesArg = Union[Tensor, Sequence[Tensor]]
 DEFAULT_CHUNK_ELEMENTS = 1 << 24
 # RoIs whose window sides agree within this factor are pooled together (padded to the largest).
 _BUCKET_GROWTH = 1.5
+# ...unless padding every window to the largest costs at most this factor more gathered pixels than
+# the windows hold, or fewer than _SMALL_CHUNK pixels: then one chunk (fewer ops) is cheaper.
+_PAD_WASTE = 3.0
+_SMALL_CHUNK = 1 << 14
 
 
 def convert_boxes_to_rois(boxes: BoxesArg, like: Tensor) -> Tensor:
@@ -240,6 +244,9 @@ def _plan_chunks(
     Bucketing each axis separately bounds the padding waste (tall and wide windows are
     never padded to each other's size) with a few dozen chunks in practice.
     """
+    padded = len(heights) * heights.max() * widths.max()
+    if channels * padded <= max_elements and padded <= max(_PAD_WASTE * (heights * widths).sum(), _SMALL_CHUNK):
+        return [(np.arange(len(heights)), heights.max(), widths.max())]  # one chunk: padding costs little
     step = np.log(_BUCKET_GROWTH)
     buckets = np.ceil(np.log(heights) / step) * 4096 + np.ceil(np.log(widths) / step)
     order = np.argsort(buckets, kind="stable")
