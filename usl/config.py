@@ -6,7 +6,8 @@ defaults; ``_base_: other.yaml`` inherits another recipe first. Overrides use do
 (``optim.lr=0.01``, ``model.shape.num_stages=1``) and YAML values (``data.root=/data/hs``,
 ``optim.steps=[60000,75000]``). Unknown keys and ill-typed values are errors that name the key
 and the file, so a typo never silently trains with a default. The resolved config (every field)
-is saved in the run folder and in each checkpoint.
+is saved in the run folder and in each checkpoint; the keys of options since removed
+(``REMOVED_OPTIONS``) still load there at their "off" value.
 """
 
 from __future__ import annotations
@@ -99,7 +100,7 @@ class ShapeHeadConfig:
     # Mesh R-CNN: each stage's last GraphConv output is concatenated into the next stage's first
     # GraphConv input (its width grows by hidden_dim); False: stages share only the vertex positions
     pass_features: bool = False
-    sampler: str = "roimap"  # "roimap" (paper) | "vertalign" (Mesh R-CNN, the ablation)
+    sampler: str = "roimap"  # "roimap" (paper) | "vertalign" (Mesh R-CNN's: Table 1's "w/o RoIMap")
     vertalign_resolution: int = 14  # RoIAlign size of the VertAlign ablation
     # GraphConv weight init: "normal" N(0, 0.01²) (Mesh R-CNN) | "kaiming" (He init for the
     # neighbourhood sum): with "normal" three GraphConvs pass ~1% of the image features on
