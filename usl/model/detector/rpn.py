@@ -11,7 +11,7 @@ from torch import nn
 from ..backbone import ShapeSpec
 from ..ops import AnchorGenerator, Box2BoxTransform, batched_nms, box_iou, clip_boxes, nonempty_boxes
 from .config import RPNConfig
-from .matcher import IGNORE, Matcher, subsample_labels
+from .matcher import IGNORE, Matcher, subsample_labels_dense
 from .structures import ImageList, Instances
 
 Tensor = torch.Tensor
@@ -86,22 +86,27 @@ class RPN(nn.Module):
         for target in targets:
             gt_boxes = target.gt_boxes
             matches, labels = self.matcher(box_iou(gt_boxes, anchors))
-            positive, negative = subsample_labels(labels, self.cfg.batch_size_per_image, self.cfg.positive_fraction)
-            sampled = torch.full_like(labels, IGNORE)
-            sampled[positive] = 1
-            sampled[negative] = 0
-            all_labels.append(sampled)
+            all_labels.append(labels)
             all_boxes.append(gt_boxes[matches] if len(gt_boxes) else torch.zeros_like(anchors))
-        return torch.stack(all_labels), torch.stack(all_boxes)
+        labels = subsample_labels_dense(
+            torch.stack(all_labels), self.cfg.batch_size_per_image, self.cfg.positive_fraction
+        )
+        return labels, torch.stack(all_boxes)
 
     def losses(self, anchors: Tensor, logits: Tensor, deltas: Tensor, targets: list[Instances]) -> dict[str, Tensor]:
+        """Sums over all anchors weighted by their sampled labels (no boolean indexing, so no device read)."""
         labels, matched_boxes = self.label_anchors(anchors, targets)
         positive = labels == 1
         valid = labels != IGNORE
-        target_deltas = self.box2box.get_deltas(anchors.expand_as(matched_boxes)[positive], matched_boxes[positive])
+        # anchors that match nothing regress onto themselves (zero deltas, weight 0): finite everywhere
+        anchors = anchors.expand_as(matched_boxes)
+        matched_boxes = torch.where(positive[..., None], matched_boxes, anchors)
+        target_deltas = self.box2box.get_deltas(anchors.reshape(-1, 4), matched_boxes.reshape(-1, 4))
         normalizer = self.cfg.batch_size_per_image * len(targets)
-        loss_loc = F.smooth_l1_loss(deltas[positive], target_deltas, beta=self.cfg.smooth_l1_beta, reduction="sum")
-        loss_cls = F.binary_cross_entropy_with_logits(logits[valid], labels[valid].to(logits.dtype), reduction="sum")
+        loc = F.smooth_l1_loss(deltas.reshape(-1, 4), target_deltas, beta=self.cfg.smooth_l1_beta, reduction="none")
+        loss_loc = (loc.sum(dim=1) * positive.reshape(-1)).sum()
+        cls = F.binary_cross_entropy_with_logits(logits, labels.clamp(min=0).to(logits.dtype), reduction="none")
+        loss_cls = (cls * valid).sum()
         weight = self.cfg.loss_weight / normalizer
         return {"loss_rpn_cls": loss_cls * weight, "loss_rpn_loc": loss_loc * weight}
 
