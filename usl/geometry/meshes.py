@@ -45,7 +45,7 @@ class _Topology:
     def edges(self) -> Tensor:
         if "edges" not in self._cache:
             if self.template is not None:
-                local = unique_edges(self.template)
+                local = unique_edges(self.template, self.verts_counts[0] if self.verts_counts else None)
                 offsets = self.first_vert[:, None, None]
                 self._cache["edges"] = (local.unsqueeze(0) + offsets).reshape(-1, 2)
             else:
