@@ -4,12 +4,15 @@
     python scripts/bench/count_ops.py --config hypersim --size 192 256 --objects 20   # 2 images x 20 x 5
     python scripts/bench/count_ops.py --config tiny --data /data/scene_shapes_small  # real records
     python scripts/bench/count_ops.py --config tiny --cpu-steps 20         # and CPU seconds per step
+    python scripts/bench/count_ops.py --config tiny --predict detections   # usl-predict's model call
 
 One step of the trainer's own ``TrainStep`` (forward, backward, clipping, guard, optimizer) after
 ``--warmup`` steps, counted with ``usl.utils.op_count``: ATen ops dispatched, host syncs by kind (the
 points where a CUDA run waits for the device), and the source lines causing most of each. Counts are
 deterministic, so two commits compare exactly; ``--cpu-steps`` adds the median process CPU time of
 that many uncounted steps (compare commits in one run, alternating, with OMP_NUM_THREADS=1).
+``--predict MODE`` counts one ``USLModel.predict`` call on the batch's input views instead (what
+usl-predict and usl-eval run per batch), with the trained-from-scratch weights of the step.
 """
 
 from __future__ import annotations
@@ -73,18 +76,25 @@ def main() -> None:
     p.add_argument("--warmup", type=int, default=2)
     p.add_argument("--top", type=int, default=15, help="source lines listed")
     p.add_argument("--cpu-steps", type=int, default=0, help="also time this many uncounted steps")
+    p.add_argument("--predict", choices=("gt_boxes", "detections"), help="count inference instead of a step")
     p.add_argument("overrides", nargs="*", help="config overrides key=value")
     args = p.parse_args()
     torch.set_num_threads(1)
     step, batches = build_batches(args)
     for iteration in range(args.warmup):
         step(batches[iteration % 2])
+    frames = [sample.frame for sample in batches[args.warmup % 2]]
     with count_ops(ROOT) as count:
-        step(batches[args.warmup % 2])
+        if args.predict:
+            with torch.no_grad():
+                step.model.predict(frames, args.predict)
+        else:
+            step(batches[args.warmup % 2])
     cfg = step.cfg
     print(
         f"config={args.config} images={cfg.train.batch_size} objects={args.objects or 'data'} "
-        f"views={cfg.data.num_views} data={'records' if args.data else 'synthetic'}"
+        f"views={cfg.data.num_views} data={'records' if args.data else 'synthetic'} "
+        f"counted={'predict ' + args.predict if args.predict else 'training step'}"
     )
     print(format_report(count, args.top))
     if args.cpu_steps:

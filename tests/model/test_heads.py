@@ -161,3 +161,34 @@ def test_rpn_losses_weighted_over_all_anchors_match_the_sampled_anchors_alone(mo
         torch.testing.assert_close(new[key], old[key])
     for a, b in zip(new_grads, old_grads):
         torch.testing.assert_close(a, b)
+
+
+def test_rpn_nms_of_all_images_at_once_matches_one_image_at_a_time():
+    """The former per-image loop (clip, drop empty, NMS per level, top-k) is the oracle."""
+    from usl.model.backbone import ShapeSpec
+    from usl.model.detector.config import DetectorConfig
+    from usl.model.detector.rpn import RPN
+    from usl.model.ops import batched_nms, clip_boxes, nonempty_boxes
+
+    cfg = DetectorConfig.tiny().rpn
+    rpn = RPN(cfg, {name: ShapeSpec(channels=8, stride=2 ** (i + 2)) for i, name in enumerate(cfg.in_features)})
+    generator = torch.Generator().manual_seed(2)
+    num_levels, per_level = len(cfg.in_features), 40
+    corner = torch.rand(3, num_levels * per_level, 2, generator=generator) * 90 - 10
+    boxes = torch.cat([corner, corner + torch.rand(3, num_levels * per_level, 2, generator=generator) * 40], 2)
+    boxes[0, 3] = float("nan")
+    boxes[1, 5, 2:] = boxes[1, 5, :2]  # empty
+    scores = torch.randn(3, num_levels * per_level, generator=generator).round(decimals=1)  # ties
+    scores[2, 7] = float("-inf")
+    levels = torch.arange(num_levels).repeat_interleave(per_level)
+    sizes = [(64, 80), (48, 64), (64, 64)]
+    new = rpn._nms_per_image(boxes, scores, levels, sizes, post_topk=25)
+    for image, (image_boxes, image_scores, size) in enumerate(zip(boxes, scores, sizes)):
+        image_boxes = clip_boxes(image_boxes, size)
+        keep = nonempty_boxes(image_boxes, cfg.min_box_size) & torch.isfinite(image_scores)
+        keep &= torch.isfinite(image_boxes).all(dim=1)
+        image_boxes, image_scores, image_levels = image_boxes[keep], image_scores[keep], levels[keep]
+        kept = batched_nms(image_boxes, image_scores, image_levels, cfg.nms_thresh)[:25]
+        assert torch.equal(new[image].proposal_boxes, image_boxes[kept])
+        assert torch.equal(new[image].objectness_logits, image_scores[kept])
+        assert new[image].image_size == size

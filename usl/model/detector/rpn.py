@@ -9,7 +9,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from ..backbone import ShapeSpec
-from ..ops import AnchorGenerator, Box2BoxTransform, batched_nms, box_iou, clip_boxes, nonempty_boxes
+from ..ops import AnchorGenerator, Box2BoxTransform, batched_nms, box_iou, nonempty_boxes
 from .config import RPNConfig
 from .matcher import IGNORE, Matcher, subsample_labels_dense
 from .structures import ImageList, Instances
@@ -130,14 +130,30 @@ class RPN(nn.Module):
             levels.append(torch.full((k,), level, device=top_index.device, dtype=torch.long))
         boxes, scores, levels = torch.cat(boxes, 1), torch.cat(scores, 1), torch.cat(levels)
 
+        return self._nms_per_image(boxes, scores, levels, image_sizes, post_topk)
+
+    def _nms_per_image(
+        self, boxes: Tensor, scores: Tensor, levels: Tensor, image_sizes: list[tuple[int, int]], post_topk: int
+    ) -> list[Instances]:
+        """Clip, drop empty boxes, NMS per (image, level) and top-k per image, for all images in one
+        NMS call: two host reads (the boxes kept, the count per image) whatever the batch size."""
+        num_images, per_image = scores.shape
+        sizes = torch.tensor(image_sizes, dtype=boxes.dtype, device=boxes.device)  # (N, 2) height, width
+        high = sizes.flip(1).repeat(1, 2)[:, None]  # (N, 1, 4): width, height, width, height
+        boxes = torch.minimum(boxes.clamp(min=0), high).reshape(-1, 4)
+        scores = scores.reshape(-1)
+        image = torch.arange(num_images, device=boxes.device).repeat_interleave(
+            per_image, output_size=num_images * per_image
+        )
+        keep = nonempty_boxes(boxes, self.cfg.min_box_size) & torch.isfinite(scores) & torch.isfinite(boxes).all(1)
+        index = torch.nonzero(keep).squeeze(1)
+        groups = image[index] * len(self.in_features) + levels.repeat(num_images)[index]
+        kept = index[batched_nms(boxes[index], scores[index], groups, self.cfg.nms_thresh)]
+        # image by image, each in decreasing score (ties by index), as NMS ran on each image alone
+        kept = kept[torch.sort(image[kept], stable=True).indices]
+        counts = (image[kept][None] == torch.arange(num_images, device=boxes.device)[:, None]).sum(1).tolist()
         proposals = []
-        for image_boxes, image_scores, image_size in zip(boxes, scores, image_sizes):
-            image_boxes = clip_boxes(image_boxes, image_size)
-            keep = nonempty_boxes(image_boxes, self.cfg.min_box_size) & torch.isfinite(image_scores)
-            keep &= torch.isfinite(image_boxes).all(dim=1)
-            image_boxes, image_scores, image_levels = image_boxes[keep], image_scores[keep], levels[keep]
-            kept = batched_nms(image_boxes, image_scores, image_levels, self.cfg.nms_thresh)[:post_topk]
-            proposals.append(
-                Instances(image_size, proposal_boxes=image_boxes[kept], objectness_logits=image_scores[kept])
-            )
+        for size, rows in zip(image_sizes, kept.split(counts)):
+            rows = rows[:post_topk]
+            proposals.append(Instances(size, proposal_boxes=boxes[rows], objectness_logits=scores[rows]))
         return proposals
