@@ -20,6 +20,18 @@ class ConfigError(ValueError):
     """A config file, key or value is wrong; the message names which."""
 
 
+def check_choice(key: str, value: str, choices: Sequence[str]) -> None:
+    """A ConfigError naming the key unless ``value`` is one of ``choices``."""
+    if value not in choices:
+        raise ConfigError(f"{key}: {value!r} is not one of {list(choices)}")
+
+
+def check_positive(key: str, value: int) -> None:
+    """A ConfigError naming the key unless ``value`` is at least 1."""
+    if value < 1:
+        raise ConfigError(f"{key}: must be >= 1, got {value}")
+
+
 def to_dict(obj: Any) -> Any:
     """Dataclasses to plain dicts, tuples to lists: what ``yaml.safe_dump`` and JSON accept."""
     if dataclasses.is_dataclass(obj) and not isinstance(obj, type):

@@ -26,7 +26,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterable
 
-from usl.records import UslError
+from usl.errors import UslError
 
 from .masks import Detection, FrameView, ScanInfo, checked_rle
 

@@ -19,23 +19,21 @@ from __future__ import annotations
 
 import argparse
 import statistics
-import sys
 import time
 from pathlib import Path
 
 import torch
 
-ROOT = Path(__file__).resolve().parents[2]
-sys.path.insert(0, str(ROOT))
+from usl.config import load_config
+from usl.data import CategoryIndex, MultiViewDataset, SampleKey
+from usl.engine.synthetic import synthetic_config, synthetic_sample
+from usl.engine.distributed import DistInfo
+from usl.engine.train import fill_dataset_fields, seed_everything
+from usl.engine.train_step import TrainStep
+from usl.records import RecordsDataset
+from usl.utils.op_count import count_ops, format_report
 
-from usl.config import load_config  # noqa: E402
-from usl.data import CategoryIndex, MultiViewDataset, SampleKey  # noqa: E402
-from usl.data.synthetic import synthetic_config, synthetic_sample  # noqa: E402
-from usl.engine.distributed import DistInfo  # noqa: E402
-from usl.engine.train import fill_dataset_fields, seed_everything  # noqa: E402
-from usl.engine.train_step import TrainStep  # noqa: E402
-from usl.records import RecordsDataset  # noqa: E402
-from usl.utils.op_count import count_ops, format_report  # noqa: E402
+ROOT = Path(__file__).resolve().parents[2]
 
 SIZE = {"tiny": (128, 128), "tiny_long": (128, 128), "hypersim": (192, 256), "scannet": (242, 324)}
 OBJECTS = {"tiny": 2, "tiny_long": 2, "hypersim": 20, "scannet": 8}

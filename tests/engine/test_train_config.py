@@ -10,8 +10,6 @@ import yaml
 from usl.config import (
     Config,
     ConfigError,
-    DataConfig,
-    ModelConfig,
     config_from_dict,
     load_config,
     parse_overrides,
@@ -19,9 +17,11 @@ from usl.config import (
     save_config,
     to_dict,
 )
+from usl.data.config import DataConfig
+from usl.model.config import ModelConfig
 from usl.config_docs import field_docs, iter_keys
-from usl.engine.train_cli import main as train_main
-from usl.engine.train_cli import parse_args
+from usl.cli.train import main as train_main
+from usl.cli.train import parse_args
 from usl.model.detector import DetectorConfig
 
 

@@ -6,7 +6,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from detection_oracles import roi_align_loop
+from tests.model.detection_oracles import roi_align_loop
 from usl.model.detector import (
     ImageList,
     Instances,

@@ -8,9 +8,14 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from detection_scenes import make_dataset
-from pretrained_layouts import caffe2_resnet50, detectron2_mask_rcnn, torchvision_maskrcnn, torchvision_resnet50
-from usl.config import LayoutHeadConfig, LayoutRange, ModelConfig, ShapeHeadConfig
+from tests.model.detection_scenes import make_dataset
+from tests.model.pretrained_layouts import (
+    caffe2_resnet50,
+    detectron2_mask_rcnn,
+    torchvision_maskrcnn,
+    torchvision_resnet50,
+)
+from usl.model.config import LayoutHeadConfig, LayoutRange, ModelConfig, ShapeHeadConfig
 from usl.model.backbone import IMAGENET_MEAN, IMAGENET_STD, BackboneConfig, FPNConfig, ResNetConfig
 from usl.model.detector import BoxHeadConfig, DetectorConfig, MaskHeadConfig, MaskRCNN, ROIHeadsConfig
 from usl.model.pretrained import WeightsError, init_detector, print_report

@@ -6,8 +6,8 @@ import torch
 import trimesh
 import torch.nn.functional as F
 
-from per_pair_oracle import render_dynamic_per_pair
-from render_oracle import intrinsics, random_scene, render_pyrender
+from tests.render.per_pair_oracle import render_dynamic_per_pair
+from tests.render.render_oracle import intrinsics, random_scene, render_pyrender
 from usl.geometry.cameras import scale_intrinsics
 from usl.render import SoftRasterSettings, render_dynamic, resample_masks_area
 

@@ -4,7 +4,7 @@ change that puts a per-object loop or a device read back into the step fails her
 import pytest
 import torch
 
-from usl.data.synthetic import synthetic_config, synthetic_sample
+from usl.engine.synthetic import synthetic_config, synthetic_sample
 from usl.engine.distributed import DistInfo
 from usl.engine.train import seed_everything
 from usl.engine.train_step import TrainStep

@@ -14,8 +14,9 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from usl.config import DataConfig
-from usl.records import RecordsDataset, UslError, decode_mask, decoding, frame_K, frame_pose
+from usl.data.config import DataConfig
+from usl.records import RecordsDataset, decode_mask, decoding, frame_K, frame_pose
+from usl.errors import UslError
 
 from .frames import CategoryIndex, FrameData, decode_frame
 from .mirror import mirror_sample

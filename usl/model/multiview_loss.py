@@ -24,7 +24,7 @@ from typing import NamedTuple
 
 import torch
 
-from usl.config import LossConfig
+from usl.model.config import LossConfig
 from usl.data.samples import MultiViewSample
 from usl.geometry import Meshes, faces_on_each_edge, sample_points_from_meshes
 from usl.geometry.cameras import relative_transform, transform_points

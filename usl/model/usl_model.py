@@ -17,7 +17,7 @@ from typing import Sequence
 import torch
 from torch import nn
 
-from usl.config import LossConfig, ModelConfig
+from usl.model.config import LossConfig, ModelConfig
 from usl.data.frames import FrameData
 from usl.data.samples import MultiViewSample
 from usl.geometry import cube_to_frustum

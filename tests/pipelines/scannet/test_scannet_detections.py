@@ -18,7 +18,7 @@ from pipelines.scannet.detections_file import (
 )
 from pipelines.scannet.masks import FrameView, checked_rle
 from pipelines.scannet.sens import SensScan
-from usl.records import UslError
+from usl.errors import UslError
 
 SCENE = "scene0001_00"
 SPEC_MAPPING = tuple((int(c["coco_id"]), int(c["id"])) for c in load_dataset_spec("scannet")["categories"])

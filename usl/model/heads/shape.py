@@ -24,7 +24,7 @@ from typing import Mapping, Optional
 import torch
 from torch import nn
 
-from usl.config import ShapeHeadConfig
+from usl.model.config import ShapeHeadConfig
 from usl.geometry import ico_sphere, unique_edges
 from usl.model.backbone import ShapeSpec
 

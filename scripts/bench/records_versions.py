@@ -1,0 +1,49 @@
+"""What reading schema v1 folders costs: row reads per CPU-second, interleaved in one process, of the
+same scenes from a v1 folder read as usl 0.1 did (no upgrade), the v1 folder upgraded to v2 rows
+on read, and a v2 folder; then whole samples decoded to tensors from the v2 folder.
+
+    python scripts/bench/records_versions.py V1_ROOT V2_ROOT   # e.g. a v1 build and its migrated copy
+"""
+
+import random
+import sys
+import time
+from bisect import bisect_right
+
+from usl.records import RecordsDataset
+from usl.data import CategoryIndex, decode_frame
+
+
+def base_read(shard, first, offsets):  # usl 0.1's read_rows: no upgrade step
+    rows = [first + o for o in offsets]
+    g0 = bisect_right(shard.group_starts, min(rows)) - 1
+    g1 = bisect_right(shard.group_starts, max(rows)) - 1
+    t = shard.file.read_row_groups(list(range(g0, g1 + 1)))
+    return t.take([r - int(shard.group_starts[g0]) for r in rows]).to_pylist()
+
+
+v1, v2 = RecordsDataset(sys.argv[1], "train"), RecordsDataset(sys.argv[2], "train")
+rng = random.Random(0)
+picks = [(s, sorted(rng.sample(range(v1.num_views(s)), 5))) for s in rng.choices(v1.scene_ids, k=200)]
+
+
+def v1_base(s, views):
+    loc = v1._location(s)
+    return base_read(v1._shard(loc.shard, "frames"), loc.first_row, views)
+
+
+cases = {"v1, read as usl 0.1 did": v1_base, "v1, upgraded to v2 rows": v1.read_scene, "v2": v2.read_scene}
+cpu = dict.fromkeys(cases, 0.0)
+for _ in range(5):
+    for name, read in cases.items():
+        c = time.process_time()
+        for s, views in picks:
+            read(s, views)
+        cpu[name] += time.process_time() - c
+for name, t in cpu.items():
+    print(f"{name:26s} {5 * len(picks) / t:8.1f} five-view reads per CPU-second (rows only, no decoding)")
+cats = CategoryIndex(v2.categories)
+c = time.process_time()
+for s, views in picks[:100]:
+    [decode_frame(r, cats) for r in v2.read_scene(s, views)]
+print(f"v2 with decode_frame      {100 / (time.process_time() - c):8.1f} five-view samples per CPU-second")

@@ -1,0 +1,113 @@
+"""Training-step benchmark: seconds per iteration, images/s and peak memory of ``usl-train``'s step.
+
+    python scripts/bench/train.py --config tiny --device cpu                 # CPU, tiny recipe
+    python scripts/bench/train.py --config hypersim --device cuda            # paper size: 768x1024,
+                                                                             # 2 images x 5 views per GPU
+    python scripts/bench/train.py --config tiny --data /data/scene_shapes_small   # real records
+
+Without ``--data`` the batches are synthetic but shaped like the dataset of the recipe: images
+of ``--size``, ``--objects`` objects per input view with elliptic masks, and ``num_views`` views
+per sample whose masks sit at other places (the cost of a step does not depend on the masks
+being consistent). The step is the trainer's own ``TrainStep`` (autocast, clipping, NaN guard,
+optimizer); data loading is not timed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import resource
+import statistics
+import time
+
+import torch
+
+from usl.config import load_config
+from usl.data import CategoryIndex, MultiViewDataset, SampleKey
+from usl.engine.synthetic import synthetic_config, synthetic_sample
+from usl.engine.distributed import DistInfo
+from usl.engine.train import fill_dataset_fields, seed_everything
+from usl.engine.train_step import TrainStep
+from usl.records import RecordsDataset
+
+DEFAULT_SIZE = {
+    "tiny": (128, 128),
+    "scene_shapes": (512, 512),
+    "scene_shapes_fpn": (512, 512),
+    "hypersim": (768, 1024),
+    "scannet": (968, 1296),
+}
+DEFAULT_OBJECTS = {"tiny": 2, "scene_shapes": 2, "scene_shapes_fpn": 2, "hypersim": 20, "scannet": 8}
+
+
+def load_bench_config(args: argparse.Namespace):
+    overrides = [f"train.batch_size={args.batch_size}" if args.batch_size else None, *args.overrides]
+    if args.data:
+        cfg = load_config(args.config, [o for o in overrides if o])
+        records = RecordsDataset(args.data, cfg.data.train_split)
+        fill_dataset_fields(cfg, records)
+        return cfg, records
+    return synthetic_config(args.config, [o for o in overrides if o]), None
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--config", default="tiny")
+    p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    p.add_argument("--data", help="real records folder (default: synthetic batches)")
+    p.add_argument("--iters", type=int, default=10, help="timed iterations")
+    p.add_argument("--warmup", type=int, default=3)
+    p.add_argument("--batch-size", type=int, default=0, help="default: the recipe's train.batch_size")
+    p.add_argument("--size", type=int, nargs=2, metavar=("H", "W"), help="synthetic image size")
+    p.add_argument("--objects", type=int, help="synthetic objects per input view")
+    p.add_argument("--threads", type=int, default=0, help="CPU intra-op threads (0: torch default)")
+    p.add_argument("overrides", nargs="*", help="config overrides key=value")
+    args = p.parse_args()
+    device = torch.device(args.device)
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    cfg, records = load_bench_config(args)
+    seed_everything(cfg.train.seed, 0)
+    train_step = TrainStep(cfg, DistInfo(0, 1, 0, device))
+    batch_size = cfg.train.batch_size
+    if records is not None:
+        dataset = MultiViewDataset(records, cfg.data, CategoryIndex(records.categories), cfg.train.seed)
+        pool = [dataset[SampleKey(i % len(dataset), i // len(dataset))] for i in range(4 * batch_size)]
+    else:
+        height, width = args.size or DEFAULT_SIZE.get(args.config, (768, 1024))
+        objects = args.objects or DEFAULT_OBJECTS.get(args.config, 10)
+        pool = [
+            synthetic_sample(i, height, width, objects, cfg.data.num_views, len(cfg.model.categories))
+            for i in range(4 * batch_size)
+        ]
+    batches = [pool[k * batch_size : (k + 1) * batch_size] for k in range(4)]
+    times, cpu_times = [], []  # wall clock; CPU time of this process (all its threads)
+    for iteration in range(args.warmup + args.iters):
+        batch = batches[iteration % len(batches)]
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
+        start, cpu_start = time.perf_counter(), time.process_time()
+        values = train_step(batch)
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
+        if iteration >= args.warmup:
+            times.append(time.perf_counter() - start)
+            cpu_times.append(time.process_time() - cpu_start)
+    per_iter = statistics.median(times)
+    images = batch_size
+    print(
+        f"config={args.config} device={device} batch={images} views={cfg.data.num_views} "
+        f"stages={cfg.model.shape.num_stages} ico={cfg.model.shape.ico_level} render={cfg.loss.render.resolution} "
+        f"amp={cfg.train.amp if device.type == 'cuda' else 'off'} data={'records' if args.data else 'synthetic'}"
+    )
+    print(f"  seconds/iteration (median of {len(times)}): {per_iter:.3f}   min {min(times):.3f}  max {max(times):.3f}")
+    print(
+        f"  CPU seconds/iteration (median, all threads; steady on a shared machine): {statistics.median(cpu_times):.3f}"
+    )
+    print(f"  images/s: {images / per_iter:.2f}   last loss {values['loss']:.4f}")
+    if device.type == "cuda":
+        print(f"  peak GPU memory: {torch.cuda.max_memory_allocated(device) / 2**30:.2f} GiB")
+    print(f"  peak process RSS: {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20:.2f} GiB")
+
+
+if __name__ == "__main__":
+    main()
