@@ -70,13 +70,17 @@ class Meter:
             self.values.setdefault(key, []).append(value)
 
     def read(self) -> dict[str, list[float]]:
-        """Every value added, as Python numbers (one device read)."""
-        keys = list(self.values)
-        flat = [torch.as_tensor(v, dtype=torch.float64).reshape(()).cpu() for k in keys for v in self.values[k]]
-        numbers = torch.stack(flat).tolist() if flat else []
-        out, start = {}, 0
-        for key in keys:
-            out[key], start = numbers[start : start + len(self.values[key])], start + len(self.values[key])
+        """Every value added, as Python numbers (one device read: the tensors are stacked where they are)."""
+        flat = [(k, i, v) for k in self.values for i, v in enumerate(self.values[k])]
+        out = {k: [0.0] * len(v) for k, v in self.values.items()}
+        tensors = [(k, i, v) for k, i, v in flat if isinstance(v, torch.Tensor)]
+        if tensors:
+            numbers = torch.stack([v.detach().reshape(()).to(torch.float64) for _, _, v in tensors]).tolist()
+            for (key, index, _), number in zip(tensors, numbers):
+                out[key][index] = number
+        for key, index, value in flat:
+            if not isinstance(value, torch.Tensor):
+                out[key][index] = float(value)
         return out
 
     def means(self, numbers: dict[str, list[float]] | None = None) -> dict[str, float]:

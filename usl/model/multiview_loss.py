@@ -153,7 +153,7 @@ def multiview_silhouette_loss(
         "xent_gate": _mean(xent.gate, present),
         "iou_input": _mean(xent.iou, present & is_input),
         **other_views,
-        "dist_factor": torch.tensor(dist_factor),
+        "dist_factor": l3d.new_tensor(dist_factor),
     }
     return SilhouetteLoss(l3d, dist_part, l3d - dist_part, stats)
 
