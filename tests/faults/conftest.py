@@ -173,6 +173,22 @@ class SmallDisks:
 
 
 @pytest.fixture
+def fail_write(write_faults: Callable[..., WriteFaults]) -> Callable[[int, int, str, Callable[[], int]], None]:
+    """``fail_write(position, errno_, label, run)``: ``run()`` with that write failing must exit 2;
+    writes work again afterwards, and the fault is tallied under ``label``."""
+
+    def fail(position: int, errno_: int, label: str, run: Callable[[], int]) -> None:
+        plan = write_faults(position, errno_)
+        assert run() == 2, f"{label} failed but the command went on"
+        assert plan.fired
+        write_faults()
+        TALLY.tried += 1
+        TALLY.sites.add(label)
+
+    return fail
+
+
+@pytest.fixture
 def small_disk(tmp_path: Path) -> Iterator[SmallDisks]:
     if os.geteuid() != 0:
         pytest.skip("mounting a tmpfs needs root")

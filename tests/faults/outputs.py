@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
-import json
+import errno
 import re
 from pathlib import Path
 
 from usl.records.tempfiles import TMP_MARK
 
+FAULTS = [(errno.ENOSPC, "no space left"), (errno.EACCES, "permission denied")]  # errno, its words in the line
 PROGRESS_BAR = re.compile(r"\d+%\|")
 
 
@@ -29,13 +30,6 @@ def temp_files(root: Path) -> list[str]:
 def bytes_lost(earlier: dict[str, bytes], later: dict[str, bytes]) -> int:
     """Bytes of ``earlier``'s files that ``later`` lacks or holds changed (lost or overwritten)."""
     return sum(len(data) for name, data in earlier.items() if later.get(name) != data)
-
-
-def without_creator(manifest: bytes) -> dict:
-    """A manifest without its creator (which names --out): equal for equal datasets in other folders."""
-    data = json.loads(manifest)
-    data.pop("creator", None)
-    return data
 
 
 def one_line_error(text: str) -> str:

@@ -4,7 +4,6 @@ earlier run in the folder stays whole, and a rerun writes it again."""
 
 from __future__ import annotations
 
-import errno
 import socket
 import subprocess
 import sys
@@ -14,7 +13,7 @@ import numpy as np
 import pytest
 
 from tests.evaluation.eval_helpers import build_dataset, tiny_checkpoint
-from tests.faults.outputs import bytes_lost, finished_files, one_line_error
+from tests.faults.outputs import FAULTS, bytes_lost, finished_files, one_line_error
 from usl.cli.evaluate import main as eval_main
 from usl.cli.predict import main as predict_main
 
@@ -52,8 +51,10 @@ def predict(checkpoint, images, out) -> int:
     return predict_main([*argv, "--score-threshold", "0.01", "--device", "cpu", "--quiet"])
 
 
-@pytest.mark.parametrize(("code", "fault"), [(errno.ENOSPC, "no space left"), (errno.EACCES, "permission denied")])
-def test_every_write_of_an_evaluation_fails_cleanly(code, fault, data, tmp_path, write_faults, capsys, fault_tally):
+@pytest.mark.parametrize(("code", "fault"), FAULTS)
+def test_every_write_of_an_evaluation_fails_cleanly(
+    code, fault, data, tmp_path, write_faults, fail_write, capsys, fault_tally
+):
     out = tmp_path / "eval"
     assert evaluate(data, out) == 0
     earlier = finished_files(out)
@@ -62,12 +63,7 @@ def test_every_write_of_an_evaluation_fails_cleanly(code, fault, data, tmp_path,
     assert {"rename into place (metrics.json)", "rename into place (table.md)"} <= set(counting.sites)
     capsys.readouterr()
     for k, site in enumerate(counting.sites):
-        plan = write_faults(k, code)
-        assert evaluate(data, out) == 2, site
-        assert plan.fired
-        write_faults()
-        fault_tally.tried += 1
-        fault_tally.sites.add(f"evaluation: {site}")
+        fail_write(k, code, f"evaluation: {site}", lambda: evaluate(data, out))
         message = one_line_error(capsys.readouterr().err)
         assert fault in message and "rerun the same command" in message, message
         lost = bytes_lost(earlier, finished_files(out))

@@ -20,19 +20,14 @@ from pathlib import Path
 
 import pytest
 import torch
-from tests.faults.outputs import bytes_lost, finished_files, one_line_error
+from tests.faults.outputs import FAULTS, bytes_lost, finished_files, one_line_error
 
 from tests.data.synthetic_records import build_synthetic_records
+from tests.engine.test_train import FAST as TRAIN_FAST
 from usl.cli.train import main
 
 FAST = [
-    "train.cpu_threads=1",
-    "data.max_size=0",
-    "data.num_views=2",
-    "loss.mesh_points=100",
-    "loss.mask_points=100",
-    "loss.render.resolution=16",
-    "model.shape.num_stages=1",
+    *TRAIN_FAST,
     "train.batch_size=4",
     "train.checkpoint_every=1",
     "train.log_every=1",
@@ -85,9 +80,9 @@ ACCESS_SITES = (
 )
 
 
-@pytest.mark.parametrize(("code", "fault"), [(errno.ENOSPC, "no space left"), (errno.EACCES, "permission denied")])
+@pytest.mark.parametrize(("code", "fault"), FAULTS)
 def test_every_kind_of_write_of_a_training_fails_cleanly(
-    code, fault, one_iteration, reference, tmp_path, write_faults, capsys, fault_tally
+    code, fault, one_iteration, reference, tmp_path, write_faults, fail_write, capsys, fault_tally
 ):
     out = tmp_path / "count"
     shutil.copytree(one_iteration, out)
@@ -101,12 +96,7 @@ def test_every_kind_of_write_of_a_training_fails_cleanly(
         out = tmp_path / f"fault-{position}"
         shutil.copytree(one_iteration, out)
         before = finished_files(out)
-        plan = write_faults(position, code)
-        assert resume(out) == 2, f"{site} failed but the training went on"
-        assert plan.fired
-        write_faults()
-        fault_tally.tried += 1
-        fault_tally.sites.add(f"training: {site}")
+        fail_write(position, code, f"training: {site}", lambda: resume(out))
         message = one_line_error(capsys.readouterr().err)
         assert fault in message and f"usl-train --resume --out {out}" in message, message
         assert (out / CHECKPOINT_1).read_bytes() == before[CHECKPOINT_1]
