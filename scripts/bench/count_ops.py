@@ -60,8 +60,9 @@ def main() -> None:
         else:
             step(batches[args.warmup % 2])
     cfg = step.cfg
+    objects = "data" if args.data else args.objects or OBJECTS.get(args.config, 10)
     print(
-        f"config={args.config} images={cfg.train.batch_size} objects={args.objects or 'data'} "
+        f"config={args.config} images={cfg.train.batch_size} objects={objects} "
         f"views={cfg.data.num_views} data={'records' if args.data else 'synthetic'} "
         f"counted={'predict ' + args.predict if args.predict else 'training step'}"
     )
