@@ -23,43 +23,14 @@ import time
 from pathlib import Path
 
 import torch
+from train import bench_step  # scripts/bench/train.py: the same step and batches it times
 
-from usl.config import load_config
-from usl.data import CategoryIndex, MultiViewDataset, SampleKey
-from usl.engine.synthetic import synthetic_config, synthetic_sample
-from usl.engine.distributed import DistInfo
-from usl.engine.train import fill_dataset_fields, seed_everything
-from usl.engine.train_step import TrainStep
-from usl.records import RecordsDataset
 from usl.utils.op_count import count_ops, format_report
 
 ROOT = Path(__file__).resolve().parents[2]
 
 SIZE = {"tiny": (128, 128), "tiny_long": (128, 128), "hypersim": (192, 256), "scannet": (242, 324)}
 OBJECTS = {"tiny": 2, "tiny_long": 2, "hypersim": 20, "scannet": 8}
-
-
-def build_batches(args: argparse.Namespace) -> tuple[TrainStep, list]:
-    overrides = ([f"train.batch_size={args.batch_size}"] if args.batch_size else []) + args.overrides
-    overrides += [f"data.num_views={args.views}"] if args.views else []
-    if args.data:
-        cfg = load_config(args.config, overrides)
-        records = RecordsDataset(args.data, cfg.data.train_split)
-        fill_dataset_fields(cfg, records)
-    else:
-        cfg, records = synthetic_config(args.config, overrides), None
-    seed_everything(cfg.train.seed, 0)
-    step = TrainStep(cfg, DistInfo(0, 1, 0, torch.device(args.device)))
-    size = cfg.train.batch_size
-    if records is not None:
-        dataset = MultiViewDataset(records, cfg.data, CategoryIndex(records.categories), cfg.train.seed)
-        pool = [dataset[SampleKey(i % len(dataset), i // len(dataset))] for i in range(2 * size)]
-    else:
-        height, width = args.size or SIZE.get(args.config, (192, 256))
-        objects = args.objects or OBJECTS.get(args.config, 10)
-        classes = len(cfg.model.categories)
-        pool = [synthetic_sample(i, height, width, objects, cfg.data.num_views, classes) for i in range(2 * size)]
-    return step, [pool[:size], pool[size:]]
 
 
 def main() -> None:
@@ -78,7 +49,7 @@ def main() -> None:
     p.add_argument("overrides", nargs="*", help="config overrides key=value")
     args = p.parse_args()
     torch.set_num_threads(1)
-    step, batches = build_batches(args)
+    step, batches = bench_step(args, torch.device(args.device), 2, SIZE, OBJECTS, (192, 256))
     for iteration in range(args.warmup):
         step(batches[iteration % 2])
     frames = [sample.frame for sample in batches[args.warmup % 2]]
@@ -89,8 +60,9 @@ def main() -> None:
         else:
             step(batches[args.warmup % 2])
     cfg = step.cfg
+    objects = "data" if args.data else args.objects or OBJECTS.get(args.config, 10)
     print(
-        f"config={args.config} images={cfg.train.batch_size} objects={args.objects or 'data'} "
+        f"config={args.config} images={cfg.train.batch_size} objects={objects} "
         f"views={cfg.data.num_views} data={'records' if args.data else 'synthetic'} "
         f"counted={'predict ' + args.predict if args.predict else 'training step'}"
     )

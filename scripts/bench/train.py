@@ -39,14 +39,39 @@ DEFAULT_SIZE = {
 DEFAULT_OBJECTS = {"tiny": 2, "scene_shapes": 2, "scene_shapes_fpn": 2, "hypersim": 20, "scannet": 8}
 
 
-def load_bench_config(args: argparse.Namespace):
-    overrides = [f"train.batch_size={args.batch_size}" if args.batch_size else None, *args.overrides]
+def bench_step(
+    args: argparse.Namespace,
+    device: torch.device,
+    num_batches: int,
+    sizes: dict[str, tuple[int, int]],
+    objects: dict[str, int],
+    default_size: tuple[int, int],
+) -> tuple[TrainStep, list[list]]:
+    """The trainer's ``TrainStep`` for ``--config`` and ``num_batches`` batches: read from the ``--data``
+    records, else synthetic ones of ``--size`` (default ``sizes[config]``) with ``--objects`` objects.
+    Also what ``count_ops.py`` counts."""
+    overrides = [f"train.batch_size={args.batch_size}"] if args.batch_size else []
+    overrides += [*args.overrides, *([f"data.num_views={args.views}"] if args.views else [])]
     if args.data:
-        cfg = load_config(args.config, [o for o in overrides if o])
+        cfg = load_config(args.config, overrides)
         records = RecordsDataset(args.data, cfg.data.train_split)
         fill_dataset_fields(cfg, records)
-        return cfg, records
-    return synthetic_config(args.config, [o for o in overrides if o]), None
+    else:
+        cfg, records = synthetic_config(args.config, overrides), None
+    seed_everything(cfg.train.seed, 0)
+    step = TrainStep(cfg, DistInfo(0, 1, 0, device))
+    size = cfg.train.batch_size
+    if records is not None:
+        dataset = MultiViewDataset(records, cfg.data, CategoryIndex(records.categories), cfg.train.seed)
+        pool = [dataset[SampleKey(i % len(dataset), i // len(dataset))] for i in range(num_batches * size)]
+    else:
+        height, width = args.size or sizes.get(args.config, default_size)
+        count = args.objects or objects.get(args.config, 10)
+        classes = len(cfg.model.categories)
+        pool = [
+            synthetic_sample(i, height, width, count, cfg.data.num_views, classes) for i in range(num_batches * size)
+        ]
+    return step, [pool[k * size : (k + 1) * size] for k in range(num_batches)]
 
 
 def main() -> None:
@@ -59,27 +84,15 @@ def main() -> None:
     p.add_argument("--batch-size", type=int, default=0, help="default: the recipe's train.batch_size")
     p.add_argument("--size", type=int, nargs=2, metavar=("H", "W"), help="synthetic image size")
     p.add_argument("--objects", type=int, help="synthetic objects per input view")
+    p.add_argument("--views", type=int, help="views per sample (default: the recipe's data.num_views)")
     p.add_argument("--threads", type=int, default=0, help="CPU intra-op threads (0: torch default)")
     p.add_argument("overrides", nargs="*", help="config overrides key=value")
     args = p.parse_args()
     device = torch.device(args.device)
     if args.threads:
         torch.set_num_threads(args.threads)
-    cfg, records = load_bench_config(args)
-    seed_everything(cfg.train.seed, 0)
-    train_step = TrainStep(cfg, DistInfo(0, 1, 0, device))
-    batch_size = cfg.train.batch_size
-    if records is not None:
-        dataset = MultiViewDataset(records, cfg.data, CategoryIndex(records.categories), cfg.train.seed)
-        pool = [dataset[SampleKey(i % len(dataset), i // len(dataset))] for i in range(4 * batch_size)]
-    else:
-        height, width = args.size or DEFAULT_SIZE.get(args.config, (768, 1024))
-        objects = args.objects or DEFAULT_OBJECTS.get(args.config, 10)
-        pool = [
-            synthetic_sample(i, height, width, objects, cfg.data.num_views, len(cfg.model.categories))
-            for i in range(4 * batch_size)
-        ]
-    batches = [pool[k * batch_size : (k + 1) * batch_size] for k in range(4)]
+    train_step, batches = bench_step(args, device, 4, DEFAULT_SIZE, DEFAULT_OBJECTS, (768, 1024))
+    cfg, batch_size = train_step.cfg, train_step.cfg.train.batch_size
     times, cpu_times = [], []  # wall clock; CPU time of this process (all its threads)
     for iteration in range(args.warmup + args.iters):
         batch = batches[iteration % len(batches)]

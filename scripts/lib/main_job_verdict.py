@@ -3,8 +3,8 @@
 The claim (exit 1 if it fails): on Scene-Shapes scenes the model never saw (a build with another
 --seed), USL beats the fixed-depth and random-depth spheres on Chamfer, F1 and Mask IoU in the
 other views. Mask IoU in the input view, where a sphere filling the true box is already a strong
-fit, is compared and printed but not claimed (README: the main job's model does not beat the
-fixed-depth sphere there yet). The learning targets of issue F are printed as MET / MISSED.
+fit, is compared and printed but not claimed: the lead there spreads over several points between
+training seeds. The learning targets of docs/experiments/README.md are printed as MET / MISSED.
 """
 
 from __future__ import annotations

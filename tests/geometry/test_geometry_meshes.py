@@ -1,4 +1,4 @@
-"""Ico-spheres, edges, uniform Laplacian, its eigenbasis and the packed Meshes structure (trimesh, numpy as oracles)."""
+"""Ico-spheres, edges, uniform Laplacian and the packed Meshes structure (trimesh, numpy as oracles)."""
 
 import numpy as np
 import pytest

@@ -126,3 +126,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         else:
             print(f"{image}: {result.num_objects} object(s): {', '.join(str(f) for f in result.files)}")
     return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

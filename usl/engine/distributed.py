@@ -94,15 +94,6 @@ def barrier() -> None:
         dist.barrier()
 
 
-def all_reduce_mean(values: torch.Tensor) -> torch.Tensor:
-    """Mean of a tensor over all processes (a copy; the input is untouched)."""
-    out = values.clone()
-    if _active():
-        dist.all_reduce(out)
-        out /= dist.get_world_size()
-    return out
-
-
 def all_reduce_min(values: torch.Tensor) -> torch.Tensor:
     out = values.clone()
     if _active():
@@ -117,11 +108,3 @@ def all_gather_objects(obj: Any) -> list[Any]:
     gathered: list[Any] = [None] * dist.get_world_size()
     dist.all_gather_object(gathered, obj)
     return gathered
-
-
-def broadcast_object(obj: Any, src: int = 0) -> Any:
-    if not _active():
-        return obj
-    box = [obj]
-    dist.broadcast_object_list(box, src=src)
-    return box[0]

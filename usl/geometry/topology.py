@@ -1,4 +1,4 @@
-"""Mesh connectivity helpers: unique edges, the faces on each edge, the uniform graph Laplacian and its smoothest eigenvectors."""
+"""Mesh connectivity helpers: unique edges, the faces on each edge and the uniform graph Laplacian."""
 
 from __future__ import annotations
 

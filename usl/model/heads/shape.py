@@ -10,10 +10,10 @@ enters the next stage's first GraphConv. As the paper states, V_0 (the unit sphe
 lie in [-1, 1]; V itself is not clamped (a clamp would stop the gradient of any vertex that
 touches the cube's faces), and the frustum map guards points beyond the far plane
 (``usl.geometry.frustum``). The pre-tanh offsets are kept for the ½‖dV‖² regularizer.
-``global_stage``
-(an option, on in ``tiny``) adds a stage before the others that sees the whole object: an MLP from
-the box's flattened RoIAlign features to every vertex's offset, ``V_g = V_0 + tanh(MLP)`` (CMR's
-shape decoder); its pre-tanh offsets join the regularizer's like any stage's.
+``global_stage`` (an option, on in ``tiny``) adds a stage before the others that sees the whole
+object: an MLP from the box's flattened RoIAlign features to every vertex's offset,
+``V_g = V_0 + tanh(MLP)`` (CMR's shape decoder); its pre-tanh offsets join the regularizer's like
+any stage's.
 """
 
 from __future__ import annotations
@@ -82,9 +82,8 @@ class RefinementStage(nn.Module):
 
 
 def global_deformation_mlp(roi_dim: int, width: int, num_outputs: int) -> nn.Sequential:
-    """RoI features -> 3 numbers per output (a vertex's pre-tanh offset, or a basis field's
-    coefficients); the last layer starts at zero, so the stage starts as the identity (the
-    sphere), like the refinement stages."""
+    """RoI features -> 3 numbers per output (a vertex's pre-tanh offset); the last layer starts at
+    zero, so the stage starts as the identity (the sphere), like the refinement stages."""
     if roi_dim <= 0:
         raise ValueError(f"model.shape.global_stage={width} needs the RoI features' size (roi_dim), got {roi_dim}")
     last = nn.Linear(width, 3 * num_outputs)
