@@ -4,6 +4,7 @@ import pytest
 import torch
 
 from tests.data.synthetic_records import build_synthetic_records
+from tests.faults.tally import pytest_sessionfinish, pytest_terminal_summary, pytest_testnodedown  # noqa: F401
 
 
 @pytest.fixture(autouse=True)

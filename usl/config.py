@@ -19,6 +19,7 @@ from typing import Any, Mapping, Sequence
 
 import yaml
 
+from usl.records.atomic import write_text_atomic
 from usl.config_io import (  # noqa: F401  (re-exported: usl.config is where callers import them)
     ConfigError,
     deep_merge,
@@ -131,5 +132,5 @@ def dump_config(config: Config) -> str:
 
 
 def save_config(config: Config, path: str | Path) -> None:
-    """Write the resolved config (every field) as YAML."""
-    Path(path).write_text(dump_config(config))
+    """Write the resolved config (every field) as YAML, atomically: a full disk keeps the old file."""
+    write_text_atomic(Path(path), dump_config(config))

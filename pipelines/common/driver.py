@@ -26,8 +26,10 @@ from usl.records.build_state import STATE_DIR, BuildState, shard_name
 from usl.records.claims import STALE_AFTER_SECONDS, Owner
 from usl.records.encode import SceneRecord, Skip
 from usl.errors import UslError, one_line
+from usl.records.names import check_name
 from usl.records.manifest import build_manifest, dataset_metadata, publish_dataset, usl_version
 from usl.records.shards import ShardWriter
+from usl.records.storage_faults import storage_faults
 from usl.records.tempfiles import process_token
 
 from .executors import EXECUTORS, make_executor, ordered_results
@@ -267,11 +269,31 @@ def run_build(
     start = time.perf_counter()
     if any(not plan.units for plan in plans):
         raise ValueError("every ShardPlan needs at least one unit")
+    for plan in plans:  # the converters check names where they read them; nothing reaches a path unchecked
+        check_name(plan.split, "split", f"{spec['name']} shard plan")
     keys = [(plan.split, plan.index) for plan in plans]
     state = BuildState(options.out, spec["name"], fingerprint, keys, about={"spec": spec, "creator": creator})
-    created = state.open()
+    state.check()  # a folder of another build or of other files is refused before anything is written
+    with storage_faults(options.out, "the shards finished so far are kept"):
+        summary = _build(options, spec, state, plans, build_scene, creator, worker_initializer, prepare)
+    summary.seconds = time.perf_counter() - start
+    return summary
+
+
+def _build(
+    options: BuildOptions,
+    spec: dict[str, Any],
+    state: BuildState,
+    plans: list[ShardPlan],
+    build_scene: Callable[[Any], SceneRecord],
+    creator: dict[str, Any],
+    worker_initializer: Callable[[], None] | None,
+    prepare: Callable[[], None] | None,
+) -> BuildSummary:
     summary = BuildSummary()
+    keys = [(plan.split, plan.index) for plan in plans]
     with Owner(state.dir, options.claim_timeout, token_dirs=(state.spill_dir,)) as owner:
+        created = state.open()
         try:
             if prepare is not None:
                 prepare()
@@ -302,7 +324,6 @@ def run_build(
             summary.manifest_written = True
             if not owner.others_alive():
                 _remove_empty(state.spill_dir)
-    summary.seconds = time.perf_counter() - start
     return summary
 
 

@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from usl.errors import UslError
+from usl.records.names import check_name
 
 from .paths import scene_metadata_file
 
@@ -62,7 +63,10 @@ def read_split_csv(path: Path) -> dict[tuple[str, str], TrajectorySplit]:
     """``metadata_images_split_scene_v1.csv`` -> trajectory -> split, included frames, exclusions."""
     trajectories: dict[tuple[str, str], TrajectorySplit] = {}
     for line, row in enumerate(_rows(path, SPLIT_COLUMNS), start=2):
-        key = (row["scene_name"], row["camera_name"])
+        key = (
+            check_name(row["scene_name"], "scene_name", f"{path}:{line}"),
+            check_name(row["camera_name"], "camera_name", f"{path}:{line}"),
+        )
         entry = trajectories.setdefault(key, TrajectorySplit())
         try:
             frame = int(row["frame_id"])
@@ -77,6 +81,7 @@ def read_split_csv(path: Path) -> dict[tuple[str, str], TrajectorySplit]:
         split = row["split_partition_name"].strip()
         if not split:
             raise UslError(f"{path}:{line}: included frame without a split_partition_name")
+        check_name(split, "split_partition_name", f"{path}:{line}")
         if entry.split not in (None, split):
             raise UslError(f"{path}:{line}: {key[0]}/{key[1]} is in both {entry.split!r} and {split!r}")
         entry.split = split
@@ -105,6 +110,7 @@ def read_camera_csv(path: Path) -> dict[str, CameraModel]:
     """``metadata_camera_parameters.csv`` -> scene -> camera model."""
     models: dict[str, CameraModel] = {}
     for line, row in enumerate(_rows(path, CAMERA_COLUMNS), start=2):
+        check_name(row["scene_name"], "scene_name", f"{path}:{line}")
         try:
             width = int(float(row["settings_output_img_width"]))
             height = int(float(row["settings_output_img_height"]))

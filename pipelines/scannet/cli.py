@@ -32,6 +32,7 @@ from pipelines.common import (
 )
 from usl.cli.common import deprecated_alias, make_parser, resolution
 from usl.errors import UslError
+from usl.records.names import check_name
 
 if TYPE_CHECKING:  # the converter loads torch: imported where used, after parsing (fast --help)
     from .convert import ConvertOptions
@@ -121,9 +122,10 @@ def parser(spec: dict) -> argparse.ArgumentParser:
 def read_split(splits_dir: Path, split: str) -> list[str]:
     path = splits_dir / f"scannetv2_{split}.txt"
     try:
-        scenes = [line.strip() for line in path.read_text().splitlines() if line.strip()]
+        lines = path.read_text().splitlines()
     except OSError as exc:
         raise UslError(f"{path}: cannot read the official split file ({exc.strerror})") from None
+    scenes = [check_name(line.strip(), "scan id", f"{path}:{n}") for n, line in enumerate(lines, 1) if line.strip()]
     if not scenes:
         raise UslError(f"{path}: lists no scans")
     return scenes

@@ -25,6 +25,7 @@ import trimesh
 import yaml
 
 from usl.errors import UslError
+from usl.records.names import check_name
 
 from .primitives import BODY
 from .shapes import CATEGORIES, ModelRef, ShapeModel, ground
@@ -89,6 +90,7 @@ def load_category_map(path: Path) -> CategoryMap:
         if not diagonals[category] > 0:
             raise UslError(f"{path}: target_diagonal_m[{category}] must be positive")
     for folder, category in folders.items():
+        check_name(folder, "category folder", path)
         if category not in CATEGORIES:
             raise UslError(
                 f"{path}: folder {folder!r} maps to unknown category {category!r} (known: {', '.join(CATEGORIES)})"

@@ -21,6 +21,7 @@ import trimesh
 
 from data_specs import load_dataset_spec
 from pipelines.common import BuildOptions, ShardPlan, run_build
+from pipelines.scene_shapes.render import renderer_for
 from usl.evaluation.types import EvalInput
 from usl.geometry import ico_sphere
 from usl.geometry.cameras import look_at
@@ -78,13 +79,10 @@ def render_truth(objects, pose: np.ndarray) -> tuple[np.ndarray, list[np.ndarray
     K = intrinsics()
     camera = pyrender.IntrinsicsCamera(K[0, 0], K[1, 1], K[0, 2], K[1, 2], znear=0.05, zfar=20.0)
     scene.add(camera, pose=pose @ np.diag([1.0, -1.0, -1.0, 1.0]))
-    renderer = pyrender.OffscreenRenderer(SIZE, SIZE)
-    try:
-        seg_map = {node: (n + 1, n + 1, n + 1) for n, node in enumerate(nodes)}
-        seg, depth = renderer.render(scene, flags=pyrender.RenderFlags.SEG, seg_node_map=seg_map)
-        color, _ = renderer.render(scene)
-    finally:
-        renderer.delete()
+    renderer = renderer_for(SIZE, SIZE)  # kept: deleting one terminates every renderer's EGL display
+    seg_map = {node: (n + 1, n + 1, n + 1) for n, node in enumerate(nodes)}
+    seg, depth = renderer.render(scene, flags=pyrender.RenderFlags.SEG, seg_node_map=seg_map)
+    color, _ = renderer.render(scene)
     return color, [seg[..., 0] == n + 1 for n in range(len(nodes))], depth
 
 

@@ -1,6 +1,9 @@
 """Schema v1 folders: read transparently, validated, and migrated in place to the exact bytes of a v2 build."""
 
 import json
+import socket
+import subprocess
+import sys
 
 import pytest
 
@@ -99,3 +102,45 @@ def test_foreign_readme_is_kept(v1):
     with pytest.raises(UslError, match="not a usl dataset card"):
         migrate_dataset(v1)
     assert (v1 / "README.md").read_text() == "my notes"
+
+
+HOLD_FOLDER = """
+import sys
+from pathlib import Path
+from usl.records.claims import sole_writer
+with sole_writer(Path(sys.argv[1]), "usl-records migrate"):
+    print("held", flush=True)
+    sys.stdin.read()
+"""
+
+
+def test_a_second_migration_is_refused_in_one_line_and_a_dead_ones_lock_is_taken_over(v1, capsys):
+    holder = subprocess.Popen(
+        [sys.executable, "-c", HOLD_FOLDER, str(v1)], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True
+    )
+    try:
+        assert holder.stdout.readline() == "held\n"
+        before = {p: p.read_bytes() for p in v1.rglob("*") if p.is_file() and ".lock" not in p.parts}
+        assert records_cli(["migrate", str(v1)]) == 2
+        error = capsys.readouterr().err.strip()
+        assert error.count("\n") == 0 and "usl-records migrate is already writing here" in error
+        assert f"pid {holder.pid} on {socket.gethostname()}" in error
+        assert {p: p.read_bytes() for p in v1.rglob("*") if p.is_file() and ".lock" not in p.parts} == before
+    finally:
+        holder.kill()  # dies holding the folder: its lock must not outlive it
+        holder.wait()
+    assert records_cli(["migrate", str(v1)]) == 0
+    assert validate_dataset(v1) == [] and not (v1 / ".migrate.json").exists() and not (v1 / ".lock").exists()
+
+
+def test_two_migrations_at_once_leave_one_migrated_folder(v1):
+    runs = [
+        subprocess.Popen(
+            [sys.executable, "-m", "usl.cli.records", "migrate", str(v1)], stderr=subprocess.PIPE, text=True
+        )
+        for _ in range(2)
+    ]
+    results = [(run.wait(), run.stderr.read()) for run in runs]
+    assert sorted(code for code, _ in results) in ([0, 0], [0, 2]), results
+    assert all("Traceback" not in err for _, err in results), results
+    assert validate_dataset(v1) == [] and not (v1 / ".migrate.json").exists() and not (v1 / ".lock").exists()

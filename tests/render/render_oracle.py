@@ -12,6 +12,8 @@ import pyrender
 import trimesh
 from scipy.spatial.transform import Rotation
 
+from pipelines.scene_shapes.render import renderer_for
+
 OPENCV_TO_OPENGL = np.diag([1.0, -1.0, -1.0, 1.0])
 
 
@@ -53,15 +55,11 @@ def render_pyrender(
     nodes = [scene.add(pyrender.Mesh.from_trimesh(m, material=material, smooth=False)) for m in meshes_world]
     scene.add(FullKCamera(K), pose=cam_to_world @ OPENCV_TO_OPENGL)
     colours = {node: _colour(i) for i, node in enumerate(nodes)}
-    renderer = pyrender.OffscreenRenderer(width, height)
-    try:
-        seg, w_depth = renderer.render(scene, flags=pyrender.RenderFlags.SEG, seg_node_map=colours)
-        alone = [
-            renderer.render(scene, flags=pyrender.RenderFlags.SEG, seg_node_map={node: colours[node]})[0]
-            for node in nodes
-        ]
-    finally:
-        renderer.delete()
+    renderer = renderer_for(width, height)  # kept: deleting one terminates every renderer's EGL display
+    seg, w_depth = renderer.render(scene, flags=pyrender.RenderFlags.SEG, seg_node_map=colours)
+    alone = [
+        renderer.render(scene, flags=pyrender.RenderFlags.SEG, seg_node_map={node: colours[node]})[0] for node in nodes
+    ]
     instance = _decode(seg, len(nodes))
     masks = np.stack([_decode(img, len(nodes)) == i for i, img in enumerate(alone)])
     return instance, _planar_depth(w_depth, K), masks

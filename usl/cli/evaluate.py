@@ -124,55 +124,63 @@ def training_curves(checkpoint: str | None, out: Path) -> str | None:
 def main(argv: Sequence[str] | None = None) -> int:
     args = parser().parse_args(argv)
     args.device = resolve_device(args.device)  # torch loads from here on
-    from usl.evaluation.scene import EvalConfig
-    from usl.evaluation.evaluate import build_predictors, dataset_spec, run_evaluation
-    from usl.evaluation.report import write_report
-    from usl.records import RecordsDataset
     from usl.errors import UslError
+    from usl.records.output_folder import output_folder
 
     try:
-        dataset = RecordsDataset(args.root, args.split)
-        predictors, scored = build_predictors(args, dataset_spec(dataset.manifest))
-        config = EvalConfig(
-            input_views=args.input_views,
-            other_views=args.other_views,
-            occlusion=not args.no_occlusion,
-            match_iou=args.match_iou,
-            occluder_score=args.occluder_score,
-            num_samples_3d=args.samples_3d,
-            f1_threshold=args.f1_threshold,
-            views_per_chunk=args.views_per_chunk,
-            batch_size=args.batch_size,
-            seed=args.seed,
-            device=args.device,
-        )
-        out = Path(args.out)
-        run = run_evaluation(
-            args.root,
-            args.split,
-            predictors,
-            config,
-            scene_ids=args.scenes.split(",") if args.scenes else None,
-            max_scenes=args.max_scenes,
-            pictures_dir=out / "pictures",
-            num_pictures=args.pictures,
-            table_layout=args.table_layout,
-            progress=not args.quiet,
-            pictures_by=args.pictures_by,
-            picture_score=args.picture_score,
-        )
-        links = {
-            "pictures": os.path.relpath(run.pictures_index, out) if run.pictures_index else None,
-            "training curves": training_curves(args.checkpoint, out),
-        }
-        header = {**run.header, "checkpoint": scored}
-        paths = write_report(out, header, run.summaries, run.rows, run.layout, {k: v for k, v in links.items() if v})
+        with output_folder(Path(args.out), COMMAND, "the results of earlier runs there are kept as they were"):
+            paths = evaluate(args)
     except UslError as exc:
         print(f"{COMMAND}: error: {exc}", file=sys.stderr)
         return 2
     print(paths["table"].read_text())
     print(f"wrote {', '.join(str(p) for p in paths.values())}")
     return 0
+
+
+def evaluate(args: argparse.Namespace) -> dict[str, Path]:
+    """Score the predictors the arguments ask for and write the report; its files."""
+    from usl.evaluation.evaluate import build_predictors, dataset_spec, run_evaluation
+    from usl.evaluation.report import write_report
+    from usl.evaluation.scene import EvalConfig
+    from usl.records import RecordsDataset
+
+    dataset = RecordsDataset(args.root, args.split)
+    predictors, scored = build_predictors(args, dataset_spec(dataset.manifest))
+    config = EvalConfig(
+        input_views=args.input_views,
+        other_views=args.other_views,
+        occlusion=not args.no_occlusion,
+        match_iou=args.match_iou,
+        occluder_score=args.occluder_score,
+        num_samples_3d=args.samples_3d,
+        f1_threshold=args.f1_threshold,
+        views_per_chunk=args.views_per_chunk,
+        batch_size=args.batch_size,
+        seed=args.seed,
+        device=args.device,
+    )
+    out = Path(args.out)
+    run = run_evaluation(
+        args.root,
+        args.split,
+        predictors,
+        config,
+        scene_ids=args.scenes.split(",") if args.scenes else None,
+        max_scenes=args.max_scenes,
+        pictures_dir=out / "pictures",
+        num_pictures=args.pictures,
+        table_layout=args.table_layout,
+        progress=not args.quiet,
+        pictures_by=args.pictures_by,
+        picture_score=args.picture_score,
+    )
+    links = {
+        "pictures": os.path.relpath(run.pictures_index, out) if run.pictures_index else None,
+        "training curves": training_curves(args.checkpoint, out),
+    }
+    header = {**run.header, "checkpoint": scored}
+    return write_report(out, header, run.summaries, run.rows, run.layout, {k: v for k, v in links.items() if v})
 
 
 if __name__ == "__main__":

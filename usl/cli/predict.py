@@ -80,6 +80,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser().parse_args(argv)
     from usl.inference.predict import model_detector, predict_images, read_intrinsics  # torch loads here
     from usl.errors import UslError
+    from usl.records.output_folder import output_folder
 
     try:
         K = read_intrinsics(args.k_file) if args.k_file else None
@@ -90,7 +91,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                 f"image {missing[0]} does not exist" + (f" (and {len(missing) - 1} more)" if len(missing) > 1 else "")
             )
         detect, categories = model_detector(args.checkpoint, resolve_device(args.device))
-        with warnings.catch_warnings(record=True) as caught:
+        kept = "the files of the images done so far are kept"
+        with output_folder(Path(args.out), COMMAND, kept), warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always", FieldOfViewWarning)
             results = predict_images(
                 detect,

@@ -104,17 +104,22 @@ def resolve_config(args: argparse.Namespace) -> tuple[Config, dict[str, Any] | N
 
 def resolve_run(args: argparse.Namespace) -> tuple[Config, Path, dict[str, Any] | None]:
     """The config, run folder and (when resuming) checkpoint payload the arguments ask for."""
-    from usl.config import ConfigError
-
-    from usl.engine.checkpoint import CHECKPOINT_DIR
-
     cfg, payload = resolve_config(args)
     if payload is not None:
         return cfg, Path(args.out or Path(payload["path"]).parent.parent), payload
     run_dir = Path(args.out or Path("runs") / cfg.name)
+    check_new_run(run_dir)
+    return cfg, run_dir, None
+
+
+def check_new_run(run_dir: Path) -> None:
+    """Refuse to start a new training in a folder that holds another one's checkpoints."""
+    from usl.config import ConfigError
+
+    from usl.engine.checkpoint import CHECKPOINT_DIR
+
     if (run_dir / CHECKPOINT_DIR).is_dir() and any((run_dir / CHECKPOINT_DIR).glob("model_*.pt")):
         raise ConfigError(f"{run_dir} already holds checkpoints: pass --resume to continue it, or another --out")
-    return cfg, run_dir, None
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -135,11 +140,15 @@ def main(argv: Sequence[str] | None = None) -> int:
             return 0
         cfg, run_dir, payload = resolve_run(args)
         from usl.engine.distributed import init_distributed, shutdown_distributed
+        from usl.engine.run_folder import hold_run_folder
         from usl.engine.train import Trainer
 
         info = init_distributed(cfg.train.device)
         try:
-            Trainer(cfg, run_dir, info, payload).train()
+            with hold_run_folder(run_dir, info):
+                if payload is None:
+                    check_new_run(run_dir)  # again: another training may have finished there meanwhile
+                Trainer(cfg, run_dir, info, payload).train()
         finally:
             shutdown_distributed()
     except (ConfigError, CheckpointError, UslError) as exc:

@@ -24,6 +24,9 @@ import numpy as np
 import torch
 
 from usl.config import Config, ConfigError, config_from_dict
+from usl.model.pretrained.files import torch_load_failure
+from usl.records.atomic import write_text_atomic
+from usl.records.tempfiles import temp_path
 
 CHECKPOINT_FORMAT = 1
 CHECKPOINT_DIR = "checkpoints"
@@ -35,10 +38,14 @@ class CheckpointError(RuntimeError):
 
 
 def save_atomic(payload: dict[str, Any], path: str | Path) -> Path:
-    """``torch.save`` to a temp file in the same folder, fsync, then rename over ``path``."""
+    """``torch.save`` to a temp file in the same folder, fsync, then rename over ``path``.
+
+    The temp file carries this process's token, so a later run reaps it once this one is gone
+    (killed mid-save): ``claims.sole_writer`` with the folder among its ``token_dirs``.
+    """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    tmp = temp_path(path, hidden=True)
     try:
         with open(tmp, "wb") as f:
             torch.save(payload, f)
@@ -48,12 +55,6 @@ def save_atomic(payload: dict[str, Any], path: str | Path) -> Path:
     finally:
         tmp.unlink(missing_ok=True)
     return path
-
-
-def _write_text_atomic(path: Path, text: str) -> None:
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    tmp.write_text(text)
-    os.replace(tmp, path)
 
 
 def resolve_checkpoint(path: str | Path) -> Path:
@@ -76,7 +77,7 @@ def read_checkpoint(path: str | Path) -> dict[str, Any]:
     try:
         payload = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # truncated files, foreign pickles and non-torch files raise various types
-        raise CheckpointError(f"checkpoint {path} could not be read ({type(exc).__name__}: {exc})") from exc
+        raise CheckpointError(f"checkpoint {path} could not be read: {torch_load_failure(exc)}") from exc
     if not isinstance(payload, dict) or "model" not in payload or "config" not in payload:
         raise CheckpointError(f"{path} is not a usl checkpoint (expected a dict with 'model' and 'config')")
     if payload.get("format") != CHECKPOINT_FORMAT:
@@ -138,7 +139,7 @@ def write_run_checkpoint(run_dir: str | Path, iteration: int, payload: dict[str,
     path = save_atomic(
         {"format": CHECKPOINT_FORMAT, **payload, "iteration": iteration}, folder / checkpoint_name(iteration)
     )
-    _write_text_atomic(folder / LAST_POINTER, path.name + "\n")
+    write_text_atomic(folder / LAST_POINTER, path.name + "\n")
     if keep > 0:
         for old in sorted(folder.glob("model_*.pt"))[:-keep]:
             old.unlink(missing_ok=True)

@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Sequence
 
 from usl.engine.run_log import CSV_NAME, read_metrics
+from usl.records.tempfiles import temp_path
 
 CURVES_NAME = "curves.png"
 # Columns of metrics.csv that are not loss terms (statistics under "stat/" are not either).
@@ -123,7 +124,10 @@ def plot_curves(run_dir: str | Path, validation_csv: str | None = None) -> Path 
     if figure is None:
         return None
     path = Path(run_dir) / CURVES_NAME
-    tmp = path.with_name(f".{path.name}.tmp.png")
-    figure.savefig(tmp, dpi=100)
-    tmp.replace(path)
+    tmp = temp_path(path, hidden=True)  # named after this process: reaped once it is gone
+    try:
+        figure.savefig(tmp, dpi=100, format="png")
+        tmp.replace(path)
+    finally:
+        tmp.unlink(missing_ok=True)
     return path

@@ -14,6 +14,8 @@ import os
 from pathlib import Path
 from typing import Any, Mapping
 
+from usl.records.tempfiles import temp_path
+
 CSV_NAME = "metrics.csv"
 
 
@@ -33,7 +35,7 @@ class RunLog:
         self.tensorboard = _tensorboard(run_dir, resume_iteration)
 
     def _rewrite(self) -> None:
-        tmp = self.path.with_name(f".{self.path.name}.tmp-{os.getpid()}")
+        tmp = temp_path(self.path, hidden=True)  # named after this process: reaped once it is gone
         with open(tmp, "w", newline="") as f:
             writer = csv.DictWriter(f, fieldnames=self.fieldnames or ["iteration"], extrasaction="ignore")
             writer.writeheader()

@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any, Mapping, Sequence
 
 from usl.evaluation.summary import PredictorSummary
+from usl.records.atomic import write_text_atomic
 
 TABLE_LAYOUTS = ("scene_shapes", "hypersim", "scannet")
 
@@ -147,13 +148,12 @@ def write_report(
     paths = {"metrics": out / "metrics.json", "objects": out / "objects.jsonl", "table": out / "table.md"}
     links = dict(links or {})
     document = {**header, "table_layout": layout, "links": links, "predictors": [s.as_dict() for s in summaries]}
-    paths["metrics"].write_text(json.dumps(json_safe(document), indent=1) + "\n")
-    with open(paths["objects"], "w") as f:
-        for row in rows:
-            f.write(json.dumps(json_safe(row)) + "\n")
+    # Atomic, like every usl output: a full disk keeps the report of an earlier run whole.
+    write_text_atomic(paths["metrics"], json.dumps(json_safe(document), indent=1) + "\n")
+    write_text_atomic(paths["objects"], "".join(json.dumps(json_safe(row)) + "\n" for row in rows))
     title = f"# {header.get('dataset', 'dataset')} / {header.get('split', '')}: {header.get('num_input_views', 0)} input views\n\n"
     footer = "".join(f"\n{name.capitalize()}: [{target}]({target})\n" for name, target in links.items())
-    paths["table"].write_text(
-        title + checkpoint_line(header.get("checkpoint")) + markdown_table(summaries, layout) + footer
+    write_text_atomic(
+        paths["table"], title + checkpoint_line(header.get("checkpoint")) + markdown_table(summaries, layout) + footer
     )
     return paths

@@ -33,6 +33,7 @@ from usl.geometry.cameras import intrinsics_from_fov, scale_intrinsics
 from usl.inference.field_of_view import auto_fov_deg
 from usl.model.outputs import ObjectPredictions
 from usl.errors import UslError
+from usl.records.names import check_name
 
 Detect = Callable[[FrameData], ObjectPredictions]
 
@@ -179,6 +180,8 @@ def predict_images(
     bad = [f for f in formats if f not in FORMATS]
     if bad:
         raise UslError(f"unknown mesh format(s) {bad}; choose from {', '.join(FORMATS)}")
+    for image_path in image_paths:  # an image's name names its output files
+        check_name(Path(image_path).stem, "image name", image_path)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     images = [(Path(p), read_image(p)) for p in image_paths]  # fail on a bad path before any work

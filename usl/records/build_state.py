@@ -76,36 +76,40 @@ class BuildState:
     def identity(self) -> dict[str, Any]:
         return {"dataset": self.dataset, "fingerprint": self.fingerprint, "shards": self.shards}
 
+    def check(self) -> None:
+        """Refuse, before anything is written, a folder that holds something other than this build."""
+        if self.root.exists() and not self.root.is_dir():
+            raise UslError(f"{self.root}: --out is a file, not a folder")
+        if (self.dir / BUILD_FILE).exists():
+            difference = identity_difference(read_build_file(self.root), self.identity)
+            if difference:
+                raise UslError(f"{self.root}: output folder holds {difference}; choose a new --out or delete it")
+        elif self.root.exists() and any(p.name != STATE_DIR for p in self.root.iterdir()):
+            raise UslError(
+                f"{self.root}: output folder is not empty and was not made by this build; choose a new --out"
+            )
+
     def open(self) -> bool:
         """Create or re-open the output folder (True: created it); refuse one that holds something else.
 
-        The check comes before anything is written, and ``build.json`` is created no-clobber, so of
-        two builds with different arguments started together on one folder, one is refused.
+        Call it as a registered ``claims.Owner`` (after ``check``), so that a temp file a killed run
+        leaves here is reaped. ``build.json`` is created no-clobber, so of two builds with different
+        arguments started together on one folder, one is refused.
         """
-        if self.root.exists() and not self.root.is_dir():
-            raise UslError(f"{self.root}: --out is a file, not a folder")
+        self.check()
         build_file = self.dir / BUILD_FILE
         created = False
         if not build_file.exists():
-            if self.root.exists() and any(p.name != STATE_DIR for p in self.root.iterdir()):
-                raise UslError(
-                    f"{self.root}: output folder is not empty and was not made by this build; choose a new --out"
-                )
+            self.dir.mkdir(parents=True, exist_ok=True)
+            tmp = temp_path(build_file, hidden=True)
             try:
-                self.dir.mkdir(parents=True, exist_ok=True)
-                tmp = temp_path(build_file, hidden=True)
                 tmp.write_text(json.dumps({**self.identity, **self.about}, indent=1) + "\n")
-                try:
-                    os.link(tmp, build_file)  # fails if another build created it first
-                    created = True
-                except FileExistsError:
-                    pass
-                finally:
-                    tmp.unlink()
-            except OSError as exc:  # read-only folder or disk, no space, ...
-                raise UslError(
-                    f"{exc.filename or self.root}: cannot write the output folder ({exc.strerror})"
-                ) from None
+                os.link(tmp, build_file)  # fails if another build created it first
+                created = True
+            except FileExistsError:
+                pass
+            finally:
+                tmp.unlink(missing_ok=True)
         difference = identity_difference(read_build_file(self.root), self.identity)
         if difference:
             raise UslError(f"{self.root}: output folder holds {difference}; choose a new --out or delete it")

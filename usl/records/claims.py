@@ -23,9 +23,10 @@ import shutil
 import socket
 import threading
 import time
+from contextlib import contextmanager, suppress
 from functools import lru_cache
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Iterator
 
 from usl.errors import UslError
 from .tempfiles import process_token, temp_files_of
@@ -125,12 +126,9 @@ class Owner:
         }
 
     def __enter__(self) -> "Owner":
-        try:
-            self.owners_dir.mkdir(parents=True, exist_ok=True)
-            self.claims_dir.mkdir(exist_ok=True)
-            _create_exclusive(self.file, self.info())
-        except OSError as exc:  # a read-only folder or disk, no space
-            raise UslError(f"{exc.filename or self.dir}: cannot write the build state ({exc.strerror})") from None
+        self.owners_dir.mkdir(parents=True, exist_ok=True)  # a full or read-only disk: the caller's storage_faults
+        self.claims_dir.mkdir(exist_ok=True)
+        _create_exclusive(self.file, self.info())
         self._thread.start()
         self.reap_stale_owners()
         return self
@@ -207,6 +205,11 @@ class Owner:
         aside.unlink()
         return False
 
+    def holder(self, name: str) -> dict[str, Any]:
+        """Who holds the claim ``name`` (the holder's ``info``; empty if nobody, or being written)."""
+        found = _read(self._claim_path(name))
+        return _holder(found[0]) if found is not None else {}
+
     def release(self, name: str) -> None:
         self._release(self._claim_path(name))
 
@@ -239,3 +242,34 @@ class Owner:
             for leftover in Path(directory).glob(f"*{token}*"):
                 leftover.unlink(missing_ok=True)
         shutil.rmtree(self.dir / f"scratch-{token}", ignore_errors=True)
+
+
+LOCK_DIR = ".lock"  # a folder's owner registry when one process at a time may write the folder
+
+
+@contextmanager
+def sole_writer(
+    folder: Path, what: str, token_dirs: tuple[Path, ...] = (), stale_after: float = STALE_AFTER_SECONDS
+) -> Iterator[Owner]:
+    """Hold ``folder`` for this process while the block runs (``what``: the command, for the error).
+
+    Another live process holding it makes this a UslError naming its host and pid; a holder that
+    is gone (same rules as shard claims) is taken over, and its temp files in ``folder`` and in
+    ``token_dirs`` (sub-folders with temp files, e.g. checkpoints) are reaped.
+    """
+    lock_dir = Path(folder) / LOCK_DIR
+    try:
+        with Owner(lock_dir, stale_after, token_dirs=token_dirs) as owner:
+            if not owner.claim("folder"):
+                holder = owner.holder("folder")
+                who = (
+                    f"pid {holder.get('pid', '?')} on {holder.get('hostname', '?')} since {holder.get('started', '?')}"
+                )
+                raise UslError(
+                    f"{folder}: {what} is already writing here ({who}); wait for it to end or use another folder"
+                )
+            yield owner
+    finally:
+        for directory in (lock_dir / "claims", lock_dir / "owners", lock_dir):
+            with suppress(OSError):  # another process's files are still there
+                directory.rmdir()

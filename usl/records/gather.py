@@ -16,11 +16,15 @@ from typing import Any
 
 from tqdm import tqdm
 
-from .build_state import BuildState, identity_difference, read_build_file
+from .build_state import BUILD_FILE, STATE_DIR, BuildState, identity_difference, read_build_file, shard_name
 from .claims import Owner
 from usl.errors import UslError
-from .manifest import build_manifest, publish_dataset
+
+from .manifest import SHARD_FILE_KEYS, build_manifest, check_relative, publish_dataset
+from .names import check_name
+from .schema import shard_file
 from .shards import ShardResult, size_problem
+from .storage_faults import storage_faults
 from .tempfiles import temp_path
 
 CHUNK = 1 << 20
@@ -55,7 +59,50 @@ def _copy_verified(source: Path, target: Path, info: dict[str, Any]) -> None:
         tmp.unlink(missing_ok=True)
 
 
+def _part_shard(part: Path, state: BuildState, split: str, index: int) -> dict[str, Any] | None:
+    """A part's record of one finished shard, None if it has none; refused unless it describes that
+    shard, with files that stay inside the part (a part is input: its records are checked like a manifest)."""
+    marker = state.marker(split, index)
+    if marker is None:
+        return None
+    where = f"{part / STATE_DIR / shard_name(split, index)}.json"
+    try:
+        result = ShardResult(**marker)
+    except TypeError:
+        raise UslError(f"{where}: not a shard record (needs {', '.join(ShardResult.__dataclass_fields__)})") from None
+    if (result.split, result.index) != (split, index):
+        raise UslError(f"{where}: records shard {result.split!r}/{result.index!r}, not {split}/{index}")
+    for table, info in _shard_files(marker):
+        if not isinstance(info, dict) or any(k not in info for k in SHARD_FILE_KEYS):
+            raise UslError(f"{where}: {table} needs {', '.join(SHARD_FILE_KEYS)}")
+        check_relative(info["file"], f"{where} {table}")
+        if info["file"] != shard_file(table, split, index):
+            raise UslError(f"{where}: {table} file {info['file']!r} is not {shard_file(table, split, index)!r}")
+    return marker
+
+
+def _shard_files(marker: dict[str, Any]) -> list[tuple[str, dict[str, Any]]]:
+    return [("frames", marker["frames"])] + ([("objects", marker["objects"])] if marker["objects"] else [])
+
+
+def _checksums(marker: dict[str, Any]) -> list[tuple[str, Any]]:
+    return [(table, info["sha256"]) for table, info in _shard_files(marker)]
+
+
+def _one_copy(split: str, index: int, copies: list[tuple[Path, dict[str, Any]]]) -> tuple[Path, dict[str, Any]]:
+    """The copy of a shard to take; parts of one build hold identical copies, so differing ones are an error."""
+    first_part, first = copies[0]
+    for part, marker in copies[1:]:
+        if _checksums(marker) != _checksums(first):
+            raise UslError(
+                f"shard {split}/{index}: {first_part} and {part} hold different copies (sha256 differs); "
+                "they were not built by one build: remove the wrong copy's part and gather again"
+            )
+    return copies[0]
+
+
 def gather(parts: list[Path], out: Path, progress: bool = False) -> GatherSummary:
+    """Copy the parts' shards into ``out`` and write its manifest once all are there."""
     if not parts:
         raise UslError("gather needs at least one part folder")
     descriptions = [read_build_file(part) for part in parts]
@@ -66,29 +113,56 @@ def gather(parts: list[Path], out: Path, progress: bool = False) -> GatherSummar
             raise UslError(f"{part}: holds {difference} than {parts[0]}; gather only parts of one build")
     if "spec" not in first or "creator" not in first:
         raise UslError(f"{parts[0]}: made by an older usl that did not record the dataset spec; rebuild it")
+    where = parts[0] / STATE_DIR / BUILD_FILE
+    shards = first["shards"]
+    if not isinstance(shards, list) or not all(
+        isinstance(s, list) and len(s) == 2 and isinstance(s[1], int) for s in shards
+    ):
+        raise UslError(f"{where}: 'shards' is not a list of [split, index] pairs")
+    for split, _ in shards:
+        check_name(split, "split", where)
     creator = {**first["creator"], "gathered_from": [str(p) for p in parts]}
     state = BuildState(
         out,
         first["dataset"],
         first["fingerprint"],
-        [tuple(s) for s in first["shards"]],
+        [tuple(s) for s in shards],
         about={"spec": first["spec"], "creator": first["creator"]},
     )
-    state.open()
+    state.check()
     sources = [BuildState(part, first["dataset"], first["fingerprint"]) for part in parts]
+    plan: dict[tuple[str, int], tuple[Path, dict[str, Any]] | None] = {}
+    for split, index in state.shards:  # every part checked before anything is written
+        copies = [(s.root, m) for s in sources if (m := _part_shard(s.root, s, split, index)) is not None]
+        plan[split, index] = _one_copy(split, index, copies) if copies else None
+    with storage_faults(out, "the shards gathered so far are kept"):
+        return _gather(state, plan, out, first, creator, progress)
+
+
+def _gather(
+    state: BuildState,
+    plan: dict[tuple[str, int], tuple[Path, dict[str, Any]] | None],
+    out: Path,
+    first: dict[str, Any],
+    creator: dict[str, Any],
+    progress: bool,
+) -> GatherSummary:
     summary = GatherSummary()
     with Owner(state.dir):
-        for split, index in tqdm(state.shards, desc="gather", unit="shard", disable=not progress):
-            if state.finished(split, index) is not None:
+        state.open()
+        for (split, index), found in tqdm(plan.items(), desc="gather", unit="shard", disable=not progress):
+            kept = state.finished(split, index)
+            if kept is not None:
+                if found is not None:
+                    _one_copy(split, index, [(out, kept), found])
                 summary.kept += 1
                 continue
-            found = next(((s, m) for s in sources if (m := s.marker(split, index)) is not None), None)
             if found is None:
                 summary.missing.append(f"{split}/{index}")
                 continue
             source, marker = found
-            for info in [marker["frames"]] + ([marker["objects"]] if marker["objects"] else []):
-                _copy_verified(source.root / info["file"], out / info["file"], info)
+            for _, info in _shard_files(marker):
+                _copy_verified(source / info["file"], out / info["file"], info)
             state.record(ShardResult(**marker))
             summary.copied += 1
         if not summary.missing:

@@ -24,7 +24,9 @@ from tqdm import tqdm
 
 from .atomic import write_json_atomic
 from .card import check_card_writable
-from .manifest import dataset_metadata, load_manifest, publish_dataset
+from usl.errors import UslError
+from .output_folder import output_folder
+from .manifest import SHARD_FILE_KEYS, check_relative, dataset_metadata, load_manifest, publish_dataset
 from .schema import SCHEMA_VERSION, dataset_schema, read_metadata, shard_file
 from .shards import _TableStream, raise_if_invalid, verify_file
 from .upgrade import upgrade_table
@@ -85,10 +87,38 @@ def _remove_old(root: Path, old_files: list[str]) -> int:
 
 
 def migrate_dataset(root: str | Path, progress: bool = False) -> MigrationSummary:
+    """Migrate ``root`` in place; one process at a time (another one's migration is a UslError)."""
     root = Path(root)
-    manifest = load_manifest(root)
+    load_manifest(root)  # not a dataset: refused before the folder is touched
+    with output_folder(root, "usl-records migrate", "the dataset is intact and the shards converted so far are kept"):
+        return _migrate(root, progress)
+
+
+def _read_state(path: Path) -> dict[str, Any]:
+    """What an interrupted run converted; an unreadable record only means converting again."""
+    try:
+        state = json.loads(path.read_text())
+    except (FileNotFoundError, ValueError):
+        return {"old_files": [], "new": {}}
+    if (
+        not isinstance(state, dict)
+        or not isinstance(state.get("old_files"), list)
+        or not isinstance(state.get("new"), dict)
+    ):
+        return {"old_files": [], "new": {}}
+    for file in state["old_files"]:  # deleted at the end: never anything outside the dataset
+        check_relative(file, str(path))
+    for old, done in state["new"].items():
+        if not isinstance(done, dict) or any(k not in done for k in SHARD_FILE_KEYS):
+            raise UslError(f"{path}: the record of {old!r} needs {', '.join(SHARD_FILE_KEYS)}")
+        check_relative(done["file"], str(path))
+    return state
+
+
+def _migrate(root: Path, progress: bool) -> MigrationSummary:
+    manifest = load_manifest(root)  # again: a migration that held the folder before may have finished it
     state_path = root / STATE
-    state = json.loads(state_path.read_text()) if state_path.exists() else {"old_files": [], "new": {}}
+    state = _read_state(state_path)
     summary = MigrationSummary()
     if manifest["schema_version"] == SCHEMA_VERSION:
         summary.already_current = True

@@ -16,6 +16,7 @@ Row groups are cut the same way whichever path a scene takes, so the shard bytes
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import os
 import uuid
@@ -165,10 +166,10 @@ class _TableStream:
         return info
 
     def abort(self) -> None:
-        try:
+        """Discard the temp file, also when the writer cannot even close (a full disk)."""
+        with contextlib.suppress(OSError):
             self.writer.close()
-        finally:
-            self.tmp.unlink(missing_ok=True)
+        self.tmp.unlink(missing_ok=True)
 
 
 def check_view_order(scene_id: str, scene_ids: Sequence[str], views: Sequence[int], last: int | None) -> int | None:

@@ -14,12 +14,15 @@ weights file cannot run code (the same guarantee as ``torch.load(weights_only=Tr
 from __future__ import annotations
 
 import pickle
+import re
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Optional, Union
 
 import numpy as np
 import torch
+
+from usl.errors import UslError, one_line
 
 Tensor = torch.Tensor
 FORMATS = ("auto", "torchvision", "detectron2")
@@ -37,8 +40,27 @@ _PICKLE_GLOBALS = {
 }
 
 
-class WeightsError(RuntimeError):
-    """A weights file is missing, unreadable, or does not fit the model."""
+class WeightsError(UslError, RuntimeError):
+    """A weights file is missing, unreadable, or does not fit the model (a CLI's one-line error)."""
+
+
+def torch_load_failure(exc: BaseException) -> str:
+    """Why ``torch.load(weights_only=True)`` refused a file, in one line.
+
+    torch's own message spans paragraphs and suggests ``weights_only=False``, which would run
+    whatever code the file holds; this keeps the part that says what was refused.
+    """
+    text = str(exc)
+    if "Weights only load failed" not in text:
+        return one_line(f"{type(exc).__name__}: {text}")
+    paragraphs = [" ".join(p.split()) for p in re.split(r"\n\s*\n", text) if p.strip()]
+    details = [
+        p.split("WeightsUnpickler error:", 1)[-1].strip()
+        for p in paragraphs
+        if not p.startswith(("Weights only load failed", "Check the documentation")) or "WeightsUnpickler error:" in p
+    ]
+    detail = "; ".join(d for d in details if d) or "it holds more than tensors"
+    return f"refused: not a file of tensors only ({detail}); nothing in it was run"
 
 
 @dataclass
@@ -74,7 +96,9 @@ def read_torch_state_dict(path: Path) -> dict[str, Tensor]:
     try:
         payload = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as error:  # torch raises several types for corrupt or foreign files
-        raise WeightsError(f"weights file {path} could not be read as a torch checkpoint: {error}") from error
+        raise WeightsError(
+            f"weights file {path} could not be read as a torch checkpoint: {torch_load_failure(error)}"
+        ) from error
     for key in _WRAPPER_KEYS:
         if isinstance(payload, dict) and isinstance(payload.get(key), dict):
             payload = payload[key]
@@ -98,7 +122,9 @@ def read_pickled_arrays(path: Path) -> tuple[dict[str, Tensor], Optional[str]]:
         with open(path, "rb") as stream:
             payload = _ArrayUnpickler(stream, encoding="latin1").load()  # latin1: Python 2 era Caffe2 files
     except Exception as error:
-        raise WeightsError(f"weights file {path} could not be read as a detectron2/Caffe2 pickle: {error}") from error
+        raise WeightsError(
+            f"weights file {path} could not be read as a detectron2/Caffe2 pickle: {one_line(error)}"
+        ) from error
     if not isinstance(payload, dict):
         raise WeightsError(f"weights file {path} holds a {type(payload).__name__}, not a dict of arrays")
     author = payload.get("__author__") if isinstance(payload.get("__author__"), str) else None
