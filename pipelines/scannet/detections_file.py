@@ -26,13 +26,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterable
 
+from usl.model.coco import COCO_CATEGORY_IDS
 from usl.records import UslError
 
 from .masks import Detection, FrameView, ScanInfo, checked_rle
 
-# COCO's 80 thing categories have ids 1..90 with these gaps; detectron2's contiguous index k is the k-th.
-COCO_ID_GAPS = frozenset({12, 26, 29, 30, 45, 66, 68, 69, 71, 83})
-COCO_CATEGORY_IDS = tuple(i for i in range(1, 91) if i not in COCO_ID_GAPS)
 FILE_NAME = re.compile(r"(?:^|[\\/])(scene\d{4}_\d{2})[\\/](?:.*[\\/])?(\d+)\.(?:jpe?g|png)$", re.IGNORECASE)
 SOURCES_FILE = "sources.json"
 

@@ -16,7 +16,8 @@ import pycocotools.mask as mask_util
 import pytest
 
 from detectron2_fixtures import FIXTURES, MASK_RCNN, POINTREND, checksum, write_random_checkpoint, write_test_images
-from usl.model.segmenter import COCO_CATEGORY_IDS, InstanceSegmenter, SegmenterConfig
+from usl.model.coco import COCO_CATEGORY_IDS
+from usl.model.segmenter import InstanceSegmenter, SegmenterConfig
 
 ORACLE = json.loads(gzip.open(FIXTURES / "detectron2_oracle.json.gz", "rt").read())
 BOX_TOLERANCE = 0.05  # pixels of the original image

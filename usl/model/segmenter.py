@@ -20,6 +20,7 @@ import numpy as np
 import torch
 from PIL import Image
 
+from .coco import COCO_CATEGORY_IDS, TORCHVISION_COCO_IDS
 from .backbone import IMAGENET_MEAN, IMAGENET_STD, BackboneConfig, ResNetConfig
 from .detector import DetectorConfig, MaskRCNN, ROIHeadsConfig
 from .detector.mask_head import paste_masks_in_image
@@ -28,12 +29,6 @@ from .pretrained import WeightsError, init_detector, read_weights
 from .pretrained.layouts import DETECTRON2_RCNN, TORCHVISION_MASK_RCNN
 
 Tensor = torch.Tensor
-
-# COCO's 80 thing categories have ids 1..90 with these gaps; detectron2's contiguous class k is the k-th.
-COCO_ID_GAPS = frozenset({12, 26, 29, 30, 45, 66, 68, 69, 71, 83})
-COCO_CATEGORY_IDS = tuple(i for i in range(1, 91) if i not in COCO_ID_GAPS)
-# torchvision's COCO models keep a slot per id 1..90 (the gaps never fire): class k is id k + 1.
-TORCHVISION_COCO_IDS = tuple(range(1, 91))
 
 
 @dataclass
