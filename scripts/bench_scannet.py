@@ -43,7 +43,7 @@ from pipelines.scannet.convert import ConvertOptions, ScanUnit, build_scene, sce
 from pipelines.scannet.detections_file import DetectionsFileSource, split_detections  # noqa: E402
 from pipelines.scannet.grid import OutputGrid  # noqa: E402
 from pipelines.scannet.quality import tracking_quality  # noqa: E402
-from pipelines.scannet.scan import open_scan  # noqa: E402
+from pipelines.scannet.convert import open_scan  # noqa: E402
 from pipelines.scannet.scannet_labels import ScanNetLabelsSource  # noqa: E402
 from pipelines.scannet.synthetic import (  # noqa: E402
     Box,

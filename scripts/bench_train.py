@@ -28,7 +28,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from data_specs import load_dataset_spec  # noqa: E402
-from usl.config import LayoutRange, load_config  # noqa: E402
+from usl.model.config import LayoutRange  # noqa: E402
+from usl.config import load_config  # noqa: E402
 from usl.data import CategoryIndex, FrameData, MultiViewDataset, MultiViewSample, SampleKey, TargetView  # noqa: E402
 from usl.engine.distributed import DistInfo  # noqa: E402
 from usl.engine.train import fill_dataset_fields, seed_everything  # noqa: E402

@@ -10,8 +10,8 @@ from typing import Any
 from tqdm import tqdm
 
 from usl.data.frames import CategoryIndex, FrameData, decode_frame
-from usl.engine.eval_model import frames_for_model, load_checkpoint_model
-from usl.engine.eval_views import select_input_views
+from usl.evaluation.model import frames_for_model, load_checkpoint_model
+from usl.evaluation.views import select_input_views
 from usl.records import RecordsDataset
 
 

@@ -29,13 +29,14 @@ from pathlib import Path
 import torch
 from tqdm import tqdm
 
-from usl.config import LayoutRange, load_config
+from usl.model.config import LayoutRange
+from usl.config import load_config
 from usl.data import CategoryIndex, MultiViewDataset, SampleKey
-from usl.engine.baselines import spec_baselines
-from usl.engine.eval_scene import EvalConfig
-from usl.engine.eval_types import EvalInput
-from usl.engine.evaluate import dataset_spec, run_evaluation
-from usl.engine.report import write_report
+from usl.evaluation.baselines import spec_baselines
+from usl.evaluation.scene import EvalConfig
+from usl.evaluation.types import EvalInput
+from usl.evaluation.evaluate import dataset_spec, run_evaluation
+from usl.evaluation.report import write_report
 from usl.geometry import cube_to_frustum, ico_sphere
 from usl.losses import combine_losses
 from usl.model.multiview_loss import REGULARIZERS, multiview_silhouette_loss, shape_regularizers

@@ -24,7 +24,7 @@ for ckpt in "${checkpoints[@]}"; do
   [[ -f $ckpt ]] || { echo "learning_curve: $ckpt: no such checkpoint" >&2; exit 1; }
   it=$(basename "$ckpt" .pt); it=$((10#${it#model_}))
   out=$RUN/curve/$it
-  [[ -f $out/metrics.json ]] || python3 -m usl.engine.eval_cli "$HELDOUT" --split train \
+  [[ -f $out/metrics.json ]] || python3 -m usl.cli.evaluate "$HELDOUT" --split train \
     --input-views "${USL_CURVE_VIEWS:-every:8}" --checkpoint "$ckpt" --rows model --out "$out" --quiet --pictures 0 >/dev/null
 done
 python3 - "$RUN/curve" <<'EOF'

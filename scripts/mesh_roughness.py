@@ -7,9 +7,7 @@ one), next to the ico-sphere's own:
   averaged over the edges (PyTorch3D's ``mesh_normal_consistency``): folds and spikes raise it, a
   smooth mesh stays near the sphere's, however it is stretched;
 - the mean length of the uniform Laplacian ``v_i - mean(neighbours of v_i)``, which curvature
-  raises as well as spikes;
-- the mean size of its w component alone: in the cube w moves a vertex along its input-view ray,
-  which the input silhouette cannot see (what ``loss.weights.depth_laplacian`` penalises).
+  raises as well as spikes.
 The pictures show the same; this puts numbers on it and says which stage to blame.
 
     python3 scripts/mesh_roughness.py HELDOUT_BUILD RUN_OR_CHECKPOINT [--split train] [--input-views every:8]
@@ -26,17 +24,17 @@ from usl.losses import normal_consistency
 Tensor = torch.Tensor
 
 
-def laplacian_sizes(verts: Tensor, laplacian: Tensor) -> Tensor:
-    """(N, 2): mean ‖(L v)_i‖ and mean |(L v)_i,w| over the vertices of each of the (N, V, 3) meshes."""
+def laplacian_length(verts: Tensor, laplacian: Tensor) -> Tensor:
+    """(N,): mean ‖(L v)_i‖ over the vertices of each of the (N, V, 3) meshes."""
     count, num_verts, _ = verts.shape
     columns = verts.permute(1, 0, 2).reshape(num_verts, 3 * count)  # every mesh at once: L is shared
     lap = torch.sparse.mm(laplacian, columns).view(num_verts, count, 3)
-    return torch.stack([lap.norm(dim=-1).mean(dim=0), lap[..., 2].abs().mean(dim=0)], dim=1)
+    return lap.norm(dim=-1).mean(dim=0)
 
 
 def roughness(verts: Tensor, faces: Tensor, pairs: Tensor, laplacian: Tensor) -> Tensor:
-    """(N, 3): normal consistency, Laplacian length and the Laplacian's w size of each mesh."""
-    return torch.cat([normal_consistency(verts, faces, pairs)[:, None], laplacian_sizes(verts, laplacian)], dim=1)
+    """(N, 2): normal consistency and Laplacian length of each mesh."""
+    return torch.stack([normal_consistency(verts, faces, pairs), laplacian_length(verts, laplacian)], dim=1)
 
 
 @torch.no_grad()
@@ -57,15 +55,13 @@ def main() -> None:
             values.append(roughness(verts.float(), head.faces, pairs, laplacian))
     sphere = roughness(head.sphere_verts[None], head.faces, pairs, laplacian)[0]
     header = f"| {args.data} ({args.split}, {args.input_views}), true boxes, in the cube"
-    print(f"{header} | normal consistency ↓ | mean ‖Lv‖ | mean \\|Lv·w\\| (along the input rays) | objects |")
-    print("|:---|:---:|:---:|:---:|:---:|")
-    print(
-        f"| ico-sphere (level {cfg.model.shape.ico_level}) | {sphere[0]:.3f} | {sphere[1]:.3f} | {sphere[2]:.3f} | – |"
-    )
+    print(f"{header} | normal consistency ↓ | mean ‖Lv‖ | objects |")
+    print("|:---|:---:|:---:|:---:|")
+    print(f"| ico-sphere (level {cfg.model.shape.ico_level}) | {sphere[0]:.3f} | {sphere[1]:.3f} | – |")
     for name, values in zip(names, per_stage):
         table = torch.cat(values)
         means = table.mean(dim=0)
-        print(f"| after {name} | {means[0]:.3f} | {means[1]:.3f} | {means[2]:.3f} | {len(table)} |")
+        print(f"| after {name} | {means[0]:.3f} | {means[1]:.3f} | {len(table)} |")
 
 
 if __name__ == "__main__":

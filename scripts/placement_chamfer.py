@@ -15,7 +15,7 @@ from __future__ import annotations
 import torch
 
 from diagnostic_inputs import input_frames, load_model, parse_args
-from usl.engine.eval_targets import true_meshes_in_camera
+from usl.evaluation.targets import true_meshes_in_camera
 from usl.geometry import Meshes
 from usl.geometry.sampling import sample_points_from_meshes
 from usl.metrics.shape3d import NUM_EVAL_SAMPLES, chamfer_f1

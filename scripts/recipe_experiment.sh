@@ -40,5 +40,5 @@ export USL_TRAIN_BATCH
   > "$RUN/train.log" 2>&1 || { tail -5 "$RUN/train.log"; exit 1; }
 cat "$RUN/train_time.txt"
 # every split of the seed-1 build is unseen; its train split is the largest
-python3 -m usl.engine.eval_cli "$HELDOUT" --split train --input-views "${USL_EXP_EVAL_VIEWS:-every:4}" --checkpoint "$RUN/train" \
+python3 -m usl.cli.evaluate "$HELDOUT" --split train --input-views "${USL_EXP_EVAL_VIEWS:-every:4}" --checkpoint "$RUN/train" \
   --rows random,fixed,model --out "$RUN/eval" --pictures 4 --quiet | grep '^|'

@@ -96,7 +96,7 @@ fail() {  # RUN_ID MESSAGE LOG
 baselines() {
   [[ -f $OUT/baselines/eval/metrics.json ]] && return 0
   rm -rf "$OUT/baselines/eval.partial" && mkdir -p "$OUT/baselines"
-  python3 -m usl.engine.eval_cli "$HELDOUT" --split train --input-views "$EVAL_VIEWS" --rows fixed,random --device cpu \
+  python3 -m usl.cli.evaluate "$HELDOUT" --split train --input-views "$EVAL_VIEWS" --rows fixed,random --device cpu \
     --out "$OUT/baselines/eval.partial" --quiet "${EVAL_OPTS[@]}" > "$OUT/baselines/eval.log" 2>&1 \
     || fail baselines "baselines: usl-eval" "$OUT/baselines/eval.log" || return 1
   mv "$OUT/baselines/eval.partial" "$OUT/baselines/eval"
@@ -120,7 +120,7 @@ run_one() {  # SLUG LABEL SEED OVERRIDES...: train (or resume), then score on th
     if [[ -f $run/train/checkpoints/last_checkpoint ]]; then resume=(--resume); else rm -rf "$run/train"; fi
     # CPU time is the figure that holds on a shared machine (table1_plan.py estimates from it)
     /usr/bin/time -o "$run/train_time.txt" -f "%e %U" \
-      python3 -m usl.engine.train ${resume[@]+"${resume[@]}"} --config "$CONFIG" --out "$run/train" data.root="$TRAIN" \
+      python3 -m usl.cli.train ${resume[@]+"${resume[@]}"} --config "$CONFIG" --out "$run/train" data.root="$TRAIN" \
       train.seed="$seed" train.cpu_threads=1 "$@" > "$run/train.log" 2>&1 \
       || fail "${slug}_$seed" "$label, seed $seed: usl-train" "$run/train.log" || return 1
     what=$(awk -v n="$iters" '{ printf "trained %d iterations in %d s wall, %d s CPU (%.2f s per iteration, start-up included)", n, $1, $2, $2 / n }' \
@@ -130,7 +130,7 @@ run_one() {  # SLUG LABEL SEED OVERRIDES...: train (or resume), then score on th
   scoring=$(date +%s)
   rm -rf "$run/eval.partial"
   /usr/bin/time -o "$run/eval_time.txt" -f "%e %U" \
-    python3 -m usl.engine.eval_cli "$HELDOUT" --split train --input-views "$EVAL_VIEWS" --checkpoint "$run/train" --rows model \
+    python3 -m usl.cli.evaluate "$HELDOUT" --split train --input-views "$EVAL_VIEWS" --checkpoint "$run/train" --rows model \
     --device cpu --out "$run/eval.partial" --quiet "${EVAL_OPTS[@]}" > "$run/eval.log" 2>&1 \
     || fail "${slug}_$seed" "$label, seed $seed: usl-eval" "$run/eval.log" || return 1
   mv "$run/eval.partial" "$run/eval"

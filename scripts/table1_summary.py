@@ -26,7 +26,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "scripts"))
 
 from table1_plan import ROWS, Row  # noqa: E402
-from usl.engine.report import COLUMNS, Column  # noqa: E402
+from usl.evaluation.report import COLUMNS, Column  # noqa: E402
 
 TABLE_COLUMNS: list[Column] = COLUMNS["scene_shapes"]  # usl-eval's Table 1 columns: titles, scales, decimals
 _SEED = re.compile(r"^seed(\d+)$")

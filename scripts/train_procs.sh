@@ -12,8 +12,8 @@ train_with_procs() {
   local procs=$1
   shift
   if (( procs > 1 )); then
-    torchrun --standalone --nproc_per_node "$procs" -m usl.engine.train "$@" train.batch_size=$(( ${USL_TRAIN_BATCH:-4} / procs ))
+    torchrun --standalone --nproc_per_node "$procs" -m usl.cli.train "$@" train.batch_size=$(( ${USL_TRAIN_BATCH:-4} / procs ))
   else
-    python3 -m usl.engine.train "$@"
+    python3 -m usl.cli.train "$@"
   fi
 }

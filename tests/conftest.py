@@ -1,14 +1,9 @@
 """Fixtures shared by every test folder."""
 
-import sys
-from pathlib import Path
-
 import pytest
 import torch
 
-sys.path.insert(0, str(Path(__file__).parent / "data"))
-
-from synthetic_records import build_synthetic_records  # noqa: E402
+from tests.data.synthetic_records import build_synthetic_records
 
 
 @pytest.fixture(autouse=True)

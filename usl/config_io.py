@@ -20,6 +20,18 @@ class ConfigError(ValueError):
     """A config file, key or value is wrong; the message names which."""
 
 
+def check_choice(key: str, value: str, choices: Sequence[str]) -> None:
+    """A ConfigError naming the key unless ``value`` is one of ``choices``."""
+    if value not in choices:
+        raise ConfigError(f"{key}: {value!r} is not one of {list(choices)}")
+
+
+def check_positive(key: str, value: int) -> None:
+    """A ConfigError naming the key unless ``value`` is at least 1."""
+    if value < 1:
+        raise ConfigError(f"{key}: must be >= 1, got {value}")
+
+
 def to_dict(obj: Any) -> Any:
     """Dataclasses to plain dicts, tuples to lists: what ``yaml.safe_dump`` and JSON accept."""
     if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
@@ -143,6 +155,31 @@ def deep_merge(base: Mapping[str, Any], update: Mapping[str, Any]) -> dict[str, 
         else:
             merged[key] = copy.deepcopy(value)
     return merged
+
+
+def drop_removed_keys(data: Mapping[str, Any], removed: Mapping[str, str], where: str) -> dict[str, Any]:
+    """``data`` without the dotted ``removed`` keys, each allowed only at its "off" value (false, 0, null
+    or empty): configs saved before a removal carry every field, and still mean what they meant. A
+    removed key set to anything else is an error naming it and ``removed[key]``, the way forward."""
+    data = copy.deepcopy(dict(data))
+    for key, instead in removed.items():
+        *path, name = key.split(".")
+        sections = [data]
+        for part in path:
+            if not isinstance(sections[-1].get(part), Mapping):
+                break
+            sections.append(sections[-1][part])
+        else:
+            if name not in sections[-1]:
+                continue
+            value = sections[-1].pop(name)
+            if value:
+                raise ConfigError(f"{where}: {key}={value!r} was removed: {instead}")
+            for section, part in zip(reversed(sections[:-1]), reversed(path)):  # drop what it left empty
+                if section[part]:
+                    break
+                del section[part]
+    return data
 
 
 def parse_overrides(overrides: Sequence[str]) -> dict[str, Any]:

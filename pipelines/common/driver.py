@@ -21,11 +21,11 @@ from typing import Any, Callable, Generator, Iterator
 
 from tqdm import tqdm
 
-from usl.cli_common import common_options
+from usl.cli.common import common_options
 from usl.records.build_state import STATE_DIR, BuildState, shard_name
 from usl.records.claims import STALE_AFTER_SECONDS, Owner
 from usl.records.encode import SceneRecord, Skip
-from usl.records.errors import UslError, one_line
+from usl.errors import UslError, one_line
 from usl.records.manifest import build_manifest, dataset_metadata, publish_dataset, usl_version
 from usl.records.shards import ShardWriter
 from usl.records.tempfiles import process_token

@@ -12,7 +12,7 @@ import multiprocessing as mp
 from collections import deque
 from typing import Any, Callable, Iterable, Iterator, TypeVar
 
-from usl.records import UslError
+from usl.errors import UslError
 
 Tag = TypeVar("Tag")
 EXECUTORS = ("local", "ray")

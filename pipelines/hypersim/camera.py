@@ -15,7 +15,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from usl.records import UslError
+from usl.errors import UslError
 
 from .paths import FrameSkip, TrajectoryPaths
 

@@ -24,9 +24,10 @@ from pipelines.common import (
     fingerprint_from_args,
     run_build,
 )
-from usl.cli_common import deprecated_alias, make_parser
-from usl.cli_common import resolution as parse_size
-from usl.records import UslError, load_manifest
+from usl.cli.common import deprecated_alias, make_parser
+from usl.cli.common import resolution as parse_size
+from usl.records import load_manifest
+from usl.errors import UslError
 
 from .metadata import read_camera_csv, read_split_csv
 from .paths import INPUT_FORMATS

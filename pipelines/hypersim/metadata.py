@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from usl.records import UslError
+from usl.errors import UslError
 
 from .paths import scene_metadata_file
 

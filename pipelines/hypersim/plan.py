@@ -11,7 +11,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 from pipelines.common import ShardPlan
-from usl.records import UslError
+from usl.errors import UslError
 
 from .camera import check_camera_model
 from .convert import ConvertOptions, TrajectoryUnit

@@ -29,7 +29,7 @@ _EXPORTS = {
     "TrackingQuality": "quality",
     "build_scene": "convert",
     "checked_rle": "masks",
-    "open_scan": "scan",
+    "open_scan": "convert",
     "split_detections": "detections_file",
     "track_scan": "convert",
     "tracking_quality": "quality",

@@ -30,8 +30,8 @@ from pipelines.common import (
     run_build,
     scratch_dir,
 )
-from usl.cli_common import deprecated_alias, make_parser, resolution
-from usl.records import UslError
+from usl.cli.common import deprecated_alias, make_parser, resolution
+from usl.errors import UslError
 
 if TYPE_CHECKING:  # the converter loads torch: imported where used, after parsing (fast --help)
     from .convert import ConvertOptions

@@ -19,11 +19,14 @@ import numpy as np
 from pycocotools import mask as mask_utils
 
 from pipelines.common import frame_sink
-from usl.records import SceneRecord, Skip, UslError, encode_depth, frame_row, make_instance
+from usl.records import SceneRecord, Skip, encode_depth, frame_row, make_instance
+from usl.errors import UslError
 
 from .grid import OutputGrid
 from .masks import Detection, FrameView, MaskSource, ScanMasks
-from .scan import Scan, open_scan, rigid_pose
+from .exported import ExportedScan
+from .scan import Scan, rigid_pose
+from .sens import SensScan
 from .tracker import IouTracker, SourceIdTracker, Track, TrackerConfig
 from .warp import DepthWarp
 
@@ -32,6 +35,17 @@ SKIP_DEPTH = "empty depth"
 SKIP_NO_OBJECT = "no object track in frame"
 SKIP_NO_DETECTIONS = "mask source gave no detections for this scan"
 SKIP_VANISHED = "object mask empty at the output resolution (instance left out of that frame)"
+
+
+def open_scan(scene_dir: Path, scene_id: str) -> Scan:
+    """Open ``<scene_dir>/<scene_id>.sens`` if present, else the exported frame folders there."""
+    scene_dir = Path(scene_dir)
+    sens = scene_dir / f"{scene_id}.sens"
+    if sens.is_file():
+        return SensScan(sens, scene_id)
+    if (scene_dir / "color").is_dir():
+        return ExportedScan(scene_dir, scene_id)
+    raise UslError(f"{scene_dir}: neither {sens.name} nor exported color/ depth/ pose/ intrinsic/ folders")
 
 
 @dataclass(frozen=True)

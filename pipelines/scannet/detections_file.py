@@ -26,8 +26,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterable
 
-from usl.model.coco import COCO_CATEGORY_IDS
-from usl.records import UslError
+from data_specs import coco_category_ids
+from usl.errors import UslError
 
 from .masks import Detection, FrameView, ScanInfo, checked_rle
 
@@ -174,10 +174,10 @@ class DetectionsFileSource:
         if not isinstance(category_id, int):
             raise UslError(f"{where}: category_id {category_id!r} is not an integer")
         if self.contiguous_ids:
-            if not 0 <= category_id < len(COCO_CATEGORY_IDS):
+            if not 0 <= category_id < len(coco_category_ids()):
                 raise UslError(f"{where}: contiguous category index {category_id} is outside 0..79")
-            return COCO_CATEGORY_IDS[category_id]
-        if category_id not in COCO_CATEGORY_IDS:
+            return coco_category_ids()[category_id]
+        if category_id not in coco_category_ids():
             hint = " (0-based class indices? use --category-ids contiguous)" if category_id == 0 else ""
             raise UslError(f"{where}: category_id {category_id} is not a COCO category id{hint}")
         return category_id

@@ -13,7 +13,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from usl.records import UslError
+from usl.errors import UslError
 
 from .scan import Calibration, check_aspect, check_registered, decode_color, depth_metres, encoded_image_size
 from .scan import half_pixel_intrinsics

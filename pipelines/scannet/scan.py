@@ -14,7 +14,8 @@ from typing import Protocol
 
 import numpy as np
 
-from usl.records import UslError, decode_image
+from usl.records import decode_image
+from usl.errors import UslError
 
 # A pose whose rotation is this far from orthonormal is not float32 noise but a broken pose.
 MAX_ROTATION_ERROR = 1e-2
@@ -142,17 +143,3 @@ def decode_color(data: bytes, source: object) -> np.ndarray:
         return decode_image(data)
     except UslError as exc:
         raise UslError(f"{source}: colour image does not decode ({exc})") from None
-
-
-def open_scan(scene_dir: Path, scene_id: str) -> Scan:
-    """Open ``<scene_dir>/<scene_id>.sens`` if present, else the exported frame folders there."""
-    from .exported import ExportedScan
-    from .sens import SensScan
-
-    scene_dir = Path(scene_dir)
-    sens = scene_dir / f"{scene_id}.sens"
-    if sens.is_file():
-        return SensScan(sens, scene_id)
-    if (scene_dir / "color").is_dir():
-        return ExportedScan(scene_dir, scene_id)
-    raise UslError(f"{scene_dir}: neither {sens.name} nor exported color/ depth/ pose/ intrinsic/ folders")

@@ -20,7 +20,7 @@ import cv2
 import numpy as np
 from pycocotools import mask as mask_utils
 
-from usl.records import UslError
+from usl.errors import UslError
 
 from .masks import Detection, FrameView, ScanInfo
 

@@ -26,8 +26,8 @@ from pipelines.common import (
     fingerprint_from_args,
     run_build,
 )
-from usl.cli_common import make_parser, resolution
-from usl.records import UslError
+from usl.cli.common import make_parser, resolution
+from usl.errors import UslError
 
 from .layout import PlacementConfig, RigConfig
 from .mesh_root import SCALE_MODES, UP_AXES, MeshNormalisation, discover_models, dump_category_map, load_category_map

@@ -24,7 +24,7 @@ import numpy as np
 import trimesh
 import yaml
 
-from usl.records import UslError
+from usl.errors import UslError
 
 from .primitives import BODY
 from .shapes import CATEGORIES, ModelRef, ShapeModel, ground

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from pipelines.common import ShardPlan
-from usl.records import UslError
+from usl.errors import UslError
 
 from .layout import PlacementConfig, sample_layout
 from .scene import SceneConfig, SceneUnit

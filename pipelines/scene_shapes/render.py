@@ -23,7 +23,7 @@ os.environ.setdefault("LP_NUM_THREADS", "1")
 import numpy as np  # noqa: E402
 import trimesh  # noqa: E402
 
-from usl.records import UslError  # noqa: E402
+from usl.errors import UslError  # noqa: E402
 
 from .floor import FloorRenderer, Light, sample_floor  # noqa: E402
 from .primitives import BODY, FRAME  # noqa: E402

@@ -13,7 +13,8 @@ import numpy as np
 import torch
 
 from usl.geometry.cameras import transform_points
-from usl.records import SceneRecord, Skip, UslError, encode_depth, encode_image, frame_row, make_instance, object_row
+from usl.records import SceneRecord, Skip, encode_depth, encode_image, frame_row, make_instance, object_row
+from usl.errors import UslError
 
 from .layout import RigConfig, SceneLayout
 from .mesh_root import MeshNormalisation, load_mesh_model

@@ -15,7 +15,7 @@ from typing import Callable
 
 import numpy as np
 
-from usl.records import UslError
+from usl.errors import UslError
 
 from . import chairs, sofas, tables
 from .primitives import Part

@@ -12,18 +12,18 @@ from pathlib import Path
 
 import pytest
 
-from usl.cli_common import common_options, deprecated_alias, make_parser, resolution
+from usl.cli.common import common_options, deprecated_alias, make_parser, resolution
 
 REPO = Path(__file__).parents[2]
 # console script -> module of its main(), as in pyproject.toml's [project.scripts]
 COMMANDS = {
     "usl-build-scene-shapes": "pipelines.scene_shapes.cli",
-    "usl-records": "usl.records.cli",
+    "usl-records": "usl.cli.records",
     "usl-convert-hypersim": "pipelines.hypersim.cli",
     "usl-convert-scannet": "pipelines.scannet.cli",
-    "usl-train": "usl.engine.train_cli",
-    "usl-eval": "usl.engine.eval_cli",
-    "usl-predict": "usl.engine.predict_cli",
+    "usl-train": "usl.cli.train",
+    "usl-eval": "usl.cli.evaluate",
+    "usl-predict": "usl.cli.predict",
 }
 # One fresh interpreter runs every --help in turn and notes after each whether torch is loaded: as
 # none may load it, the first that does is the culprit (and one process keeps the test fast).

@@ -2,7 +2,7 @@
 import numpy as np
 import torch
 
-from usl.config import DataConfig
+from usl.data.config import DataConfig
 from usl.data import CategoryIndex, MultiViewDataset, SampleKey
 from usl.data.transforms import resize_frame
 from usl.geometry.cameras import relative_transform, transform_points

@@ -5,7 +5,8 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from usl.config import ConfigError, DataConfig
+from usl.config import ConfigError
+from usl.data.config import DataConfig
 from usl.data import CategoryIndex, MultiViewDataset, SampleKey
 from usl.data.mirror import mirror_boxes, mirror_intrinsics, mirror_pose
 from usl.geometry.cameras import relative_transform, rigid_inverse, transform_points

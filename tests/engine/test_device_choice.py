@@ -4,7 +4,7 @@ import pytest
 import torch
 
 from usl.engine.distributed import choose_device
-from usl.records.errors import UslError
+from usl.errors import UslError
 
 
 @pytest.fixture

@@ -4,7 +4,8 @@ import pytest
 import torch
 from torch import nn
 
-from usl.config import ConfigError, OptimConfig, load_config
+from usl.config import ConfigError, load_config
+from usl.engine.config import OptimConfig
 from usl.engine.optim import build_optimizer, build_scheduler
 
 

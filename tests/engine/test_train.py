@@ -10,18 +10,17 @@ import cv2
 import pytest
 import torch
 
-sys.path.insert(0, str(Path(__file__).parents[1] / "data"))
+from tests.data.synthetic_records import build_synthetic_records
 
-from synthetic_records import build_synthetic_records  # noqa: E402
-
-from usl.engine.checkpoint import CheckpointError, load_model, read_checkpoint  # noqa: E402
-from usl.engine.distributed import DistInfo  # noqa: E402
-from usl.engine.run_log import read_metrics  # noqa: E402
-from usl.engine.skip_guard import TooManySkippedSteps  # noqa: E402
-from usl.engine.train import Meter, Trainer, main, seed_everything  # noqa: E402
-from usl.config import load_config  # noqa: E402
-from usl.model.outputs import ObjectPredictions  # noqa: E402
-from usl.model.usl_model import USLModel  # noqa: E402
+from usl.engine.checkpoint import CheckpointError, load_model, read_checkpoint
+from usl.engine.distributed import DistInfo
+from usl.engine.run_log import read_metrics
+from usl.engine.skip_guard import TooManySkippedSteps
+from usl.cli.train import main
+from usl.engine.train import Meter, Trainer, seed_everything
+from usl.config import load_config
+from usl.model.outputs import ObjectPredictions
+from usl.model.usl_model import USLModel
 
 REPO = Path(__file__).parents[2]
 FAST = [
@@ -138,7 +137,7 @@ def test_two_process_ddp_step_equals_one_process_on_the_combined_batch(records, 
         "--standalone",
         "--nproc_per_node=2",
         "-m",
-        "usl.engine.train",
+        "usl.cli.train",
         *_args(records, tmp_path / "two", *common, "train.batch_size=1"),
     ]
     result = subprocess.run(command, env=env, cwd=REPO, capture_output=True, text=True, timeout=300)

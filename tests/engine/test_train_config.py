@@ -1,6 +1,7 @@
 """Recipes, YAML loading, key=value overrides (usl.config) and usl-train's config command line."""
 
 import dataclasses
+import re
 from pathlib import Path
 
 import pytest
@@ -9,8 +10,6 @@ import yaml
 from usl.config import (
     Config,
     ConfigError,
-    DataConfig,
-    ModelConfig,
     config_from_dict,
     load_config,
     parse_overrides,
@@ -18,9 +17,11 @@ from usl.config import (
     save_config,
     to_dict,
 )
+from usl.data.config import DataConfig
+from usl.model.config import ModelConfig
 from usl.config_docs import field_docs, iter_keys
-from usl.engine.train_cli import main as train_main
-from usl.engine.train_cli import parse_args
+from usl.cli.train import main as train_main
+from usl.cli.train import parse_args
 from usl.model.detector import DetectorConfig
 
 
@@ -76,12 +77,38 @@ def test_tiny_recipe_uses_the_detectors_tiny_network():
     assert tiny.model.shape.bottleneck_init == "torch" and tiny.model.layout.in_features == ("p2",)
 
 
-def test_the_old_single_feature_key_still_loads_and_conflicts_are_errors():
-    with pytest.warns(FutureWarning, match="model.shape.feature is deprecated"):
-        old = config_from_dict({"model": {"shape": {"feature": "p3"}}})  # a config saved before `features`
-    assert old.model.shape.features == ("p3",) and old.model.shape.feature is None
-    with pytest.raises(ConfigError, match="disagree: set model.shape.features only"):
-        config_from_dict({"model": {"shape": {"feature": "p3", "features": ["p2", "p4"]}}})
+def test_a_config_saved_with_the_removed_options_off_loads_as_if_they_had_never_existed():
+    """Every saved config (checkpoint, run folder) carries every field, the removed ones at their off values."""
+    saved = to_dict(load_config("tiny"))
+    saved["data"]["color_jitter"] = {"brightness": 0.0, "contrast": 0.0, "saturation": 0.0, "hue": 0.0}
+    saved["model"]["shape"].update(category_templates=False, global_basis=0, feature=None)
+    saved["model"]["detector"]["backbone"]["resnet"]["weights"] = None
+    saved["loss"]["dist_vertices"] = False
+    saved["loss"]["weights"]["depth_laplacian"] = 0.0
+    assert config_from_dict(saved) == load_config("tiny")
+    assert config_from_dict({"model": {"shape": {"category_templates": False}}}) == Config()  # a partial recipe
+
+
+@pytest.mark.parametrize(
+    "override, instead",
+    [
+        ("data.color_jitter.hue=0.1", "used as stored"),
+        ("model.shape.category_templates=true", "ico-sphere"),
+        ("model.shape.global_basis=25", "one offset per vertex"),
+        ("model.shape.feature=p3", "set model.shape.features"),
+        ("model.detector.backbone.resnet.weights=/w/r50.pth", "set model.init_weights"),
+        ("loss.dist_vertices=true", "surface samples only"),
+        ("loss.weights.depth_laplacian=0.3", "loss.weights.laplacian"),
+    ],
+)
+def test_a_removed_option_turned_on_is_an_error_that_names_it_and_the_way_forward(override, instead):
+    key, _, _ = override.partition("=")
+    with pytest.raises(ConfigError, match=rf"^command line: {re.escape(key)}=.* was removed: .*{instead}") as info:
+        load_config("tiny", [override])
+    assert "docs/experiments/removed-options.md" in str(info.value) and "\n" not in str(info.value)
+
+
+def test_feature_names_are_distinct():
     with pytest.raises(ConfigError, match="need distinct backbone map names"):
         load_config("hypersim", ["model.shape.features=[p2, p2]"])
 
@@ -121,16 +148,6 @@ def test_bad_overrides_name_the_key_and_the_command_line(overrides, message):
     assert "tiny.yaml" not in str(info.value)  # the recipe is fine: the mistake is on the command line
     if "=" in overrides[0]:
         assert str(info.value).startswith("command line:") and f"(override {overrides[0]!r})" in str(info.value)
-
-
-@pytest.mark.parametrize(
-    "overrides", [["model.shape.global_stage=0", "model.shape.global_basis=9"], ["model.shape.global_basis=163"]]
-)
-def test_a_global_basis_needs_the_global_stage_and_at_most_one_field_per_vertex(overrides):
-    with pytest.raises(
-        ConfigError, match=r"^command line: .*global_basis=\d+: needs model\.shape\.global_stage > 0 and at most 162"
-    ):
-        load_config("tiny", overrides)
 
 
 def test_a_bad_recipe_names_its_file(tmp_path):
@@ -214,7 +231,7 @@ def test_paper_recipes_keep_the_papers_loss_and_init_while_tiny_documents_its_ch
         assert cfg.loss.dist_schedule.iters == () and cfg.loss.dist_schedule(10**5) == 1.0, name
         assert cfg.model.shape.graph_conv_init == "normal" and cfg.loss.iou_threshold == 0.5, name
         assert cfg.model.shape.global_stage == 0 and cfg.optim.lr_mult == {}, name
-        assert cfg.model.shape.global_basis == 0 and cfg.loss.weights.normal == 0.0, name
+        assert cfg.loss.weights.normal == 0.0, name
     tiny = load_config("tiny")
     assert not tiny.loss.gate_input_view and tiny.loss.ignore_occluders
     assert tiny.model.shape.graph_conv_init == "kaiming" and tiny.loss.render.resolution == 64

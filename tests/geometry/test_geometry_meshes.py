@@ -7,7 +7,7 @@ import trimesh
 
 from usl.geometry.icosphere import ico_sphere
 from usl.geometry.meshes import Meshes
-from usl.geometry.topology import laplacian_eigenbasis, uniform_laplacian, unique_edges
+from usl.geometry.topology import uniform_laplacian, unique_edges
 
 
 @pytest.mark.parametrize("level", range(5))
@@ -157,26 +157,3 @@ def test_meshes_reject_bad_input():
         Meshes([v, v[:, :2]], [f, f])
     with pytest.raises(ValueError, match="2 vertex tensors but 1"):
         Meshes([v, v], [f])
-
-
-def test_laplacian_eigenbasis_is_the_smoothest_orthonormal_fields_and_starts_with_constant_then_coordinates():
-    mesh = trimesh.creation.icosphere(subdivisions=2)
-    n = len(mesh.vertices)
-    basis = laplacian_eigenbasis(n, unique_edges(torch.from_numpy(mesh.faces)), 25).double()
-    # oracle: numpy's eigenvalues of D - A, with A built from trimesh's edges
-    adjacency = np.zeros((n, n))
-    adjacency[mesh.edges_unique[:, 0], mesh.edges_unique[:, 1]] = adjacency[
-        mesh.edges_unique[:, 1], mesh.edges_unique[:, 0]
-    ] = 1
-    laplacian = np.diag(adjacency.sum(1)) - adjacency
-    B = basis.numpy()
-    np.testing.assert_allclose(B.T @ B / n, np.eye(25), atol=1e-5)  # orthogonal, unit RMS
-    rayleigh = np.einsum("vk,vw,wk->k", B, laplacian, B) / n
-    np.testing.assert_allclose(rayleigh, np.linalg.eigvalsh(laplacian)[:25], atol=1e-4)  # the smoothest 25
-    np.testing.assert_allclose(np.abs(B[:, 0]), 1.0, atol=1e-5)
-    # the degree-1 fields are (up to the mesh's irregularity) the coordinates x, y, z
-    coords = mesh.vertices / np.linalg.norm(mesh.vertices, axis=1, keepdims=True)
-    fit = B[:, 1:4] @ np.linalg.lstsq(B[:, 1:4], coords, rcond=None)[0]
-    assert np.abs(fit - coords).max() < 0.05
-    with pytest.raises(ValueError, match="count must be in 1..42"):
-        laplacian_eigenbasis(42, unique_edges(torch.from_numpy(trimesh.creation.icosphere(1).faces)), 43)

@@ -10,7 +10,6 @@ from usl.geometry.meshes import Meshes
 from usl.geometry.sampling import sample_points_from_meshes
 from usl.geometry.topology import faces_on_each_edge
 from usl.losses.regularizers import (
-    depth_laplacian_loss,
     laplacian_smoothing_loss,
     mesh_edge_loss,
     normal_consistency,
@@ -50,32 +49,6 @@ def test_laplacian_loss_matches_dense_oracle():
     assert laplacian_smoothing_loss(flat).item() == 0.0
 
 
-def test_depth_laplacian_is_the_w_component_of_the_dense_oracle_and_blind_to_x_and_y():
-    tms, meshes = _two_meshes(3)
-    per_mesh = []
-    for m in tms:
-        lap_w = np.array([m.vertices[i, 2] - m.vertices[n, 2].mean() for i, n in enumerate(m.vertex_neighbors)])
-        per_mesh.append(np.abs(lap_w).mean())
-    assert depth_laplacian_loss(meshes).item() == pytest.approx(np.mean(per_mesh), rel=1e-12)
-    # In the cube x, y are the input view's pixel and w its ray: moving vertices in x and y (the
-    # silhouette l_xent fits) costs nothing, a spike along w does.
-    v, f = ico_sphere(2, dtype=DT)
-    sphere = depth_laplacian_loss(Meshes.from_shared_topology(v[None], f)).item()
-    gen = torch.Generator().manual_seed(4)
-    moved_xy = v.clone()
-    moved_xy[:, :2] += torch.randn(len(v), 2, generator=gen, dtype=DT)
-    assert depth_laplacian_loss(Meshes.from_shared_topology(moved_xy[None], f)).item() == pytest.approx(
-        sphere, rel=1e-12
-    )
-    spiked = v.clone()
-    spiked[7, 2] += 1.0
-    assert depth_laplacian_loss(Meshes.from_shared_topology(spiked[None], f)).item() > sphere + 1e-3
-    assert (
-        laplacian_smoothing_loss(Meshes.from_shared_topology(moved_xy[None], f)).item()
-        > 2 * laplacian_smoothing_loss(Meshes.from_shared_topology(v[None], f)).item()
-    )
-
-
 def test_offset_l2_is_half_squared_norm_averaged_over_vertices():
     offsets = torch.tensor([[[3.0, 4.0, 0.0], [0.0, 0.0, 0.0]], [[1.0, 0.0, 0.0], [0.0, 2.0, 0.0]]], dtype=DT)
     assert offset_l2_loss(offsets).item() == pytest.approx(0.5 * (25 + 0 + 1 + 4) / 4)
@@ -89,7 +62,6 @@ def test_regularizers_gradcheck():
     template = Meshes.from_shared_topology(v.expand(2, -1, -1).clone(), f)
     assert torch.autograd.gradcheck(lambda x: mesh_edge_loss(template.update_packed(x)), (verts,))
     assert torch.autograd.gradcheck(lambda x: laplacian_smoothing_loss(template.update_packed(x)), (verts,))
-    assert torch.autograd.gradcheck(lambda x: depth_laplacian_loss(template.update_packed(x)), (verts,))
     assert torch.autograd.gradcheck(offset_l2_loss, (verts,))
 
 
@@ -140,11 +112,6 @@ def test_recipes_and_combination():
     assert total.item() == pytest.approx(1 + 0.6) and set(parts) == {"l3d", "normal"}
     with pytest.raises(ValueError, match="normal"):
         combine_losses(LossWeights(mu_2d=0.0, offset_l2=0.0, normal=0.2), l3d=one)
-    along_rays = LossWeights(mu_2d=0.0, offset_l2=0.0, depth_laplacian=0.5)
-    total, parts = combine_losses(along_rays, l3d=one, depth_laplacian=3 * one)
-    assert total.item() == pytest.approx(1 + 1.5) and set(parts) == {"l3d", "depth_laplacian"}
-    with pytest.raises(ValueError, match="depth_laplacian"):
-        combine_losses(along_rays, l3d=one)
 
 
 def test_an_image_without_objects_gives_zero_regularizers_and_no_samples():
@@ -154,7 +121,6 @@ def test_an_image_without_objects_gives_zero_regularizers_and_no_samples():
     for loss in (
         mesh_edge_loss(empty),
         laplacian_smoothing_loss(empty),
-        depth_laplacian_loss(empty),
         offset_l2_loss(verts),
     ):
         assert loss.item() == 0.0 and loss.requires_grad
@@ -168,11 +134,13 @@ def test_the_model_averages_each_regularizer_per_image_then_over_the_batch_and_s
     verts = v * torch.tensor([[1.0, 0.5, 2.0]]) + 0.05 * torch.randn(
         3, 42, 3, generator=torch.Generator().manual_seed(5)
     )
-    out = shape_regularizers(verts, [], faces, [2, 0, 1], {"normal": True, "edge": True, "depth_laplacian": True})
+    out = shape_regularizers(verts, [], faces, [2, 0, 1], {"normal": True, "edge": True, "laplacian": True})
     per_mesh = normal_consistency(verts, faces, faces_on_each_edge(faces))
     assert out["normal"].item() == pytest.approx(((per_mesh[0] + per_mesh[1]) / 2 + per_mesh[2]).item() / 3)
     edge = [mesh_edge_loss(Meshes.from_shared_topology(verts[rows], faces)) for rows in (slice(0, 2), slice(2, 3))]
     assert out["edge"].item() == pytest.approx((edge[0] + edge[1]).item() / 3)
-    ray = [depth_laplacian_loss(Meshes.from_shared_topology(verts[rows], faces)) for rows in (slice(0, 2), slice(2, 3))]
-    assert out["depth_laplacian"].item() == pytest.approx((ray[0] + ray[1]).item() / 3)
-    assert out["laplacian"] is None and out["offset_l2"] is None
+    lap = [
+        laplacian_smoothing_loss(Meshes.from_shared_topology(verts[rows], faces)) for rows in (slice(0, 2), slice(2, 3))
+    ]
+    assert out["laplacian"].item() == pytest.approx((lap[0] + lap[1]).item() / 3)
+    assert out["offset_l2"] is None

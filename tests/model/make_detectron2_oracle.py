@@ -3,7 +3,7 @@
 Run with detectron2's public source on the path (never installed into the project's environment;
 its C++ extension is not needed for inference on the CPU), e.g.::
 
-    PYTHONPATH=detectron2:detectron2/projects/PointRend:tests/model python tests/model/make_detectron2_oracle.py
+    PYTHONPATH=.:detectron2:detectron2/projects/PointRend python tests/model/make_detectron2_oracle.py
 
 Both models get the seeded random weights of :mod:`detectron2_fixtures`, written in the model zoo's
 pickle layout and read with detectron2's own checkpointer. The tests replay the outputs without
@@ -26,7 +26,14 @@ from detectron2.config import get_cfg
 from detectron2.engine import DefaultPredictor
 from point_rend import add_pointrend_config
 
-from detectron2_fixtures import FIXTURES, MASK_RCNN, POINTREND, checksum, write_random_checkpoint, write_test_images
+from tests.model.detectron2_fixtures import (
+    FIXTURES,
+    MASK_RCNN,
+    POINTREND,
+    checksum,
+    write_random_checkpoint,
+    write_test_images,
+)
 
 CONFIGS = {
     POINTREND: "projects/PointRend/configs/InstanceSegmentation/pointrend_rcnn_R_50_FPN_3x_coco.yaml",

@@ -3,7 +3,7 @@ import math
 import pytest
 import torch
 
-from detection_oracles import iou_single
+from tests.model.detection_oracles import iou_single
 from usl.model.ops import AnchorGenerator, Box2BoxTransform, box_area, box_iou, clip_boxes, nonempty_boxes
 
 

@@ -3,7 +3,7 @@
 import pytest
 import torch
 
-from detection_scenes import make_dataset
+from tests.model.detection_scenes import make_dataset
 from usl.model.detector import DetectorConfig, MaskRCNN
 from usl.model.ops import batched_nms, roi_align
 

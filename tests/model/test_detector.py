@@ -1,7 +1,7 @@
 import pytest
 import torch
 
-from detection_scenes import make_dataset, recall_and_mask_iou
+from tests.model.detection_scenes import make_dataset, recall_and_mask_iou
 from usl.model.detector import DetectorConfig, InvalidTargetError, MaskRCNN
 
 LOSS_NAMES = {"loss_rpn_cls", "loss_rpn_loc", "loss_cls", "loss_box_reg", "loss_mask"}

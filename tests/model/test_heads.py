@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import torch
 
-from detection_oracles import roi_align_loop
+from tests.model.detection_oracles import roi_align_loop
 from usl.model.detector import (
     ImageList,
     Instances,

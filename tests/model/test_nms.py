@@ -1,7 +1,7 @@
 import pytest
 import torch
 
-from detection_oracles import nms_loop, torchvision_ops
+from tests.model.detection_oracles import nms_loop, torchvision_ops
 from usl.model.ops import batched_nms, nms
 import importlib
 

@@ -10,9 +10,9 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from detection_oracles import _bilinear
-from detection_scenes import make_dataset
-from detectron2_fixtures import CHECKPOINT_KEYS, MASK_RCNN, POINTREND
+from tests.model.detection_oracles import _bilinear
+from tests.model.detection_scenes import make_dataset
+from tests.model.detectron2_fixtures import CHECKPOINT_KEYS, MASK_RCNN, POINTREND
 from usl.model.detector import DetectorConfig, MaskRCNN
 from usl.model.detector.point_rend import (
     PointHead,

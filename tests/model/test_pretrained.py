@@ -8,9 +8,14 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from detection_scenes import make_dataset
-from pretrained_layouts import caffe2_resnet50, detectron2_mask_rcnn, torchvision_maskrcnn, torchvision_resnet50
-from usl.config import LayoutHeadConfig, LayoutRange, ModelConfig, ShapeHeadConfig
+from tests.model.detection_scenes import make_dataset
+from tests.model.pretrained_layouts import (
+    caffe2_resnet50,
+    detectron2_mask_rcnn,
+    torchvision_maskrcnn,
+    torchvision_resnet50,
+)
+from usl.model.config import LayoutHeadConfig, LayoutRange, ModelConfig, ShapeHeadConfig
 from usl.model.backbone import IMAGENET_MEAN, IMAGENET_STD, BackboneConfig, FPNConfig, ResNetConfig
 from usl.model.detector import BoxHeadConfig, DetectorConfig, MaskHeadConfig, MaskRCNN, ROIHeadsConfig
 from usl.model.pretrained import WeightsError, init_detector, print_report
@@ -247,18 +252,13 @@ def test_unknown_keys_shape_mismatches_and_gaps_are_errors_naming_the_key(tmp_pa
         init_detector(model(), tmp_path / "nowhere.pth")
 
 
-def test_model_config_resolves_the_resnet_variant_and_forwards_the_old_key():
+def test_model_config_resolves_the_resnet_variant():
     assert ModelConfig(init_weights="/w/R-50.pkl").detector.backbone.resnet.stride_in_1x1 is True
     assert ModelConfig(init_weights="/w/resnet50.pth").detector.backbone.resnet.stride_in_1x1 is False
     assert ModelConfig().detector.backbone.resnet.stride_in_1x1 is None  # built as v1.5 (torchvision)
     explicit = DetectorConfig()
     explicit.backbone.resnet.stride_in_1x1 = False
     assert ModelConfig(detector=explicit, init_weights="/w/R-50.pkl").detector.backbone.resnet.stride_in_1x1 is False
-    old = DetectorConfig()
-    old.backbone.resnet.weights = "/w/resnet50.pth"
-    with pytest.warns(FutureWarning, match="use model.init_weights"):
-        cfg = ModelConfig(detector=old)
-    assert cfg.init_weights == "/w/resnet50.pth" and cfg.detector.backbone.resnet.weights is None
 
 
 def test_usl_model_starts_from_init_weights_and_checkpoint_loading_skips_them(tmp_path, capsys):

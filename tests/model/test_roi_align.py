@@ -3,7 +3,7 @@ import itertools
 import pytest
 import torch
 
-from detection_oracles import roi_align_loop, torchvision_ops
+from tests.model.detection_oracles import roi_align_loop, torchvision_ops
 from usl.model.ops import RoIAlign, autocast_off, convert_boxes_to_rois, roi_align
 
 TV = torchvision_ops()

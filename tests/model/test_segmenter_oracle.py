@@ -15,8 +15,15 @@ import numpy as np
 import pycocotools.mask as mask_util
 import pytest
 
-from detectron2_fixtures import FIXTURES, MASK_RCNN, POINTREND, checksum, write_random_checkpoint, write_test_images
-from usl.model.coco import COCO_CATEGORY_IDS
+from tests.model.detectron2_fixtures import (
+    FIXTURES,
+    MASK_RCNN,
+    POINTREND,
+    checksum,
+    write_random_checkpoint,
+    write_test_images,
+)
+from data_specs import coco_category_ids
 from usl.model.segmenter import InstanceSegmenter, SegmenterConfig
 
 ORACLE = json.loads(gzip.open(FIXTURES / "detectron2_oracle.json.gz", "rt").read())
@@ -50,7 +57,7 @@ def match(ours, theirs, height: int, width: int) -> dict:
     free = set(range(len(ours)))
     pairs, unmatched = [], []
     for oracle in theirs:
-        category = COCO_CATEGORY_IDS[oracle["class"]]
+        category = coco_category_ids()[oracle["class"]]
         candidates = [
             i
             for i in free

@@ -1,15 +1,10 @@
-import sys
-from pathlib import Path
-
-sys.path.insert(0, str(Path(__file__).parent))
-
-import pytest  # noqa: E402
+import pytest
 
 
 @pytest.fixture(scope="session")
 def fake_v2(tmp_path_factory):
     """A small v2 dataset (train: 2 scenes in 2 shards, val: 1 scene) with 3D objects."""
-    from fake_scenes import SPEC, build_fake_scene
+    from tests.records.fake_scenes import SPEC, build_fake_scene
     from pipelines.common import BuildOptions, ShardPlan, run_build
 
     root = tmp_path_factory.mktemp("fake_v2") / "ds"

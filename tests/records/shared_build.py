@@ -1,4 +1,4 @@
-"""One build of fake scenes as its own process (``python shared_build.py OUT VERSION READY_DIR N``).
+"""One build of fake scenes as its own process (``python -m tests.records.shared_build OUT VERSION READY_DIR N``).
 
 It waits until N such processes are ready (files in READY_DIR), so that they really build at the
 same time, then builds slowly enough to overlap, and prints its summary as JSON.
@@ -10,11 +10,9 @@ import sys
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).parent))
-
-import fake_scenes  # noqa: E402
-from pipelines.common import BuildOptions, ShardPlan, run_build  # noqa: E402
-from usl.records import UslError  # noqa: E402
+from tests.records import fake_scenes
+from pipelines.common import BuildOptions, ShardPlan, run_build
+from usl.errors import UslError
 
 NUM_SHARDS = 12
 

@@ -12,15 +12,16 @@ from typing import Callable
 
 import pytest
 
-from fake_scenes import SPEC, build_fake_scene, fake_frames
+from tests.records.fake_scenes import SPEC, build_fake_scene, fake_frames
 from pipelines.common import BuildOptions, ShardPlan, run_build
 from pipelines.hypersim.metadata import read_camera_csv, read_split_csv
 from pipelines.scene_shapes.cli import main as scene_shapes_main
 from usl.data import CategoryIndex, MultiViewDataset
-from usl.config import DataConfig
-from usl.engine.eval_cli import main as eval_main
-from usl.records import RecordsDataset, SceneRecord, UslError
-from usl.records.cli import main as records_main
+from usl.data.config import DataConfig
+from usl.cli.evaluate import main as eval_main
+from usl.records import RecordsDataset, SceneRecord
+from usl.errors import UslError
+from usl.cli.records import main as records_main
 from usl.records.shards import shard_paths
 
 SHARD = shard_paths(Path(), "train", 0)["frames"].as_posix()  # where the layout puts train shard 0

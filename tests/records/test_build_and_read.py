@@ -9,11 +9,12 @@ import numpy as np
 import pytest
 from torch.utils.data import DataLoader
 
-from fake_scenes import SPEC, build_fake_scene
+from tests.records.fake_scenes import SPEC, build_fake_scene
 from pipelines.common import BuildOptions, ShardPlan, run_build
-from usl.records import RecordsDataset, SceneStream, UslError, decode_mask
+from usl.records import RecordsDataset, SceneStream, decode_mask
+from usl.errors import UslError
 
-HERE = Path(__file__).parent
+REPO = Path(__file__).parents[2]  # children import tests.records.* from the repository root
 
 
 def make_plans(num_scenes=10, per_shard=3):
@@ -45,12 +46,11 @@ def checksums(root):
 
 
 KILLER = """
-import os, sys
-sys.path.insert(0, {here!r})
+import os
 from pathlib import Path
-import fake_scenes
+from tests.records import fake_scenes
 from pipelines.common import BuildOptions, run_build
-from test_build_and_read import make_plans
+from tests.records.test_build_and_read import make_plans
 
 def dying(unit):
     if unit[0] == "scene007":
@@ -65,7 +65,7 @@ def test_resume_after_kill_matches_uninterrupted_build(tmp_path):
     reference = tmp_path / "reference"
     build(reference)
     interrupted = tmp_path / "interrupted"
-    proc = subprocess.run([sys.executable, "-c", KILLER.format(here=str(HERE), out=str(interrupted))], cwd=HERE)
+    proc = subprocess.run([sys.executable, "-c", KILLER.format(out=str(interrupted))], cwd=REPO)
     assert proc.returncode == 3
     assert not (interrupted / "manifest.json").exists()
     assert list(interrupted.glob("frames/train/*.tmp-*")), (

@@ -11,7 +11,7 @@ from pycocotools.coco import COCO
 from pycocotools.cocoeval import COCOeval
 
 from usl.records import RecordsDataset, decode_mask
-from usl.records.cli import main as records_cli
+from usl.cli.records import main as records_cli
 
 
 @pytest.fixture(scope="module")

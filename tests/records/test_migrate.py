@@ -4,12 +4,13 @@ import json
 
 import pytest
 
-from usl.records import RecordsDataset, UslError
+from usl.records import RecordsDataset
+from usl.errors import UslError
 from usl.records import migrate as migrate_module
-from usl.records.cli import main as records_cli
+from usl.cli.records import main as records_cli
 from usl.records.migrate import migrate_dataset
 from usl.records.validate import validate_dataset
-from v1_writer import write_v1_copy
+from tests.records.v1_writer import write_v1_copy
 
 
 def all_rows(root):

@@ -5,18 +5,17 @@ from pathlib import Path
 
 import pytest
 
-from fake_scenes import SPEC, build_fake_scene, build_streamed_fake_scene
+from tests.records.fake_scenes import SPEC, build_fake_scene, build_streamed_fake_scene
 from pipelines.common import BuildOptions, ShardPlan, run_build
 
 ray = pytest.importorskip("ray")
-HERE = Path(__file__).parent
-REPO = HERE.parent.parent
+REPO = Path(__file__).parents[2]
 
 
 @pytest.fixture(scope="module")
 def local_ray():
-    """A local two-CPU Ray instance whose workers import the test helpers, as a user's would import usl."""
-    path = os.pathsep.join([str(HERE), str(REPO), os.environ.get("PYTHONPATH", "")])
+    """A local two-CPU Ray instance whose workers import the test helpers (tests.records) from the repository root."""
+    path = os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")])
     ray.init(
         num_cpus=2,
         include_dashboard=False,

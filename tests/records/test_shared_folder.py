@@ -10,16 +10,15 @@ from pathlib import Path
 
 import pytest
 
-import fake_scenes
+from tests.records import fake_scenes
 from pipelines.common import BuildOptions, run_build
-from shared_build import NUM_SHARDS, plans
+from tests.records.shared_build import NUM_SHARDS, plans
 from usl.records.claims import host_identity
-from usl.records.cli import main as records_main
+from usl.cli.records import main as records_main
 from usl.records.shards import shard_paths, shard_temp_path
 from usl.records.validate import validate_dataset
 
-HERE = Path(__file__).parent
-SCRIPT = HERE / "shared_build.py"
+REPO = Path(__file__).parents[2]  # children import tests.records.* from the repository root
 
 
 def build(out, version=1, **options):
@@ -53,7 +52,8 @@ def start(out, versions, ready):
     ready.mkdir()
     return [
         subprocess.Popen(
-            [sys.executable, str(SCRIPT), str(out), str(v), str(ready), str(len(versions))],
+            [sys.executable, "-m", "tests.records.shared_build", str(out), str(v), str(ready), str(len(versions))],
+            cwd=REPO,
             stdout=subprocess.PIPE,
             text=True,
         )

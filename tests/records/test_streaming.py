@@ -8,14 +8,14 @@ from pathlib import Path
 import pyarrow.parquet as pq
 import pytest
 
-from fake_scenes import SPEC, build_fake_scene, build_streamed_fake_scene, fake_frames
+from tests.records.fake_scenes import SPEC, build_fake_scene, build_streamed_fake_scene, fake_frames
 from pipelines.common import BuildOptions, ShardPlan, run_build
 from usl.records import RecordsDataset, SceneRecord
 from usl.records.manifest import dataset_metadata
 from usl.records.schema import table_schema
 from usl.records.shards import MAX_ROWS_PER_GROUP, FrameSink, ShardWriter, frames_table
 
-HERE = Path(__file__).parent
+REPO = Path(__file__).parents[2]  # children import tests.records.* from the repository root
 # Scene lengths around the row-group size (64), long ones spanning several groups, and an empty scene.
 LENGTHS = [3, 150, 5, 64, 2, 0, 70, 100, 1, 1, 130, 65, 2, 4]
 
@@ -107,12 +107,11 @@ def test_rows_out_of_order_are_refused_by_the_sink_and_the_writer(tmp_path):
 
 
 KILLER = """
-import os, sys
-sys.path.insert(0, {here!r})
+import os
 from pathlib import Path
-import fake_scenes
+from tests.records import fake_scenes
 from pipelines.common import frame_sink
-from test_streaming import build
+from tests.records.test_streaming import build
 
 def dying(unit):
     if unit[0] != "scene007":
@@ -129,7 +128,7 @@ build(Path({out!r}), dying)
 
 def test_killed_build_with_a_half_written_spill_resumes_to_the_same_shards(in_memory, tmp_path):
     out = tmp_path / "interrupted"
-    proc = subprocess.run([sys.executable, "-c", KILLER.format(here=str(HERE), out=str(out))], cwd=HERE)
+    proc = subprocess.run([sys.executable, "-c", KILLER.format(out=str(out))], cwd=REPO)
     assert proc.returncode == 3
     assert list((out / ".build" / "spill").glob("*.parquet.tmp-*")), "the kill should leave a partial spill"
     summary = build(out, build_streamed_fake_scene)
@@ -139,12 +138,11 @@ def test_killed_build_with_a_half_written_spill_resumes_to_the_same_shards(in_me
 
 
 PEAK = """
-import sys, tracemalloc
-sys.path.insert(0, {here!r})
+import tracemalloc
 from pathlib import Path
 import numpy as np
 import pyarrow as pa
-from fake_scenes import SPEC
+from tests.records.fake_scenes import SPEC
 from pipelines.common import BuildOptions, ShardPlan, frame_sink, run_build
 from usl.records import SceneRecord, frame_row
 
@@ -178,10 +176,10 @@ def test_peak_memory_stays_flat_in_scene_length_when_streamed(tmp_path):
     allocator caching does not blur."""
 
     def growth_mib(streamed: bool) -> float:
-        script = PEAK.format(here=str(HERE), out=str(tmp_path / str(streamed)), streamed=streamed)
+        script = PEAK.format(out=str(tmp_path / str(streamed)), streamed=streamed)
         return float(
             subprocess.run(
-                [sys.executable, "-c", script], cwd=HERE, check=True, capture_output=True, text=True
+                [sys.executable, "-c", script], cwd=REPO, check=True, capture_output=True, text=True
             ).stdout.split()[-1]
         )
 

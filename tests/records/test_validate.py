@@ -6,10 +6,11 @@ import shutil
 import pyarrow.parquet as pq
 import pytest
 
-from fake_scenes import SPEC, build_fake_scene
+from tests.records.fake_scenes import SPEC, build_fake_scene
 from pipelines.common import BuildOptions, ShardPlan, run_build
-from usl.records import RecordsDataset, UslError
-from usl.records.cli import main as records_cli
+from usl.records import RecordsDataset
+from usl.errors import UslError
+from usl.cli.records import main as records_cli
 from usl.records.validate import validate_dataset
 
 

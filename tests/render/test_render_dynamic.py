@@ -6,7 +6,7 @@ import torch
 import trimesh
 import torch.nn.functional as F
 
-from render_oracle import intrinsics, random_scene, render_pyrender
+from tests.render.render_oracle import intrinsics, random_scene, render_pyrender
 from usl.geometry.cameras import scale_intrinsics
 from usl.render import SoftRasterSettings, render_dynamic, resample_mask_area
 

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from render_oracle import intrinsics, random_rigid, random_scene, render_pyrender
+from tests.render.render_oracle import intrinsics, random_rigid, random_scene, render_pyrender
 from usl.geometry.cameras import rigid_inverse, transform_points
 from usl.render import rasterize_hard
 

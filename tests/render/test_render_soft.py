@@ -5,7 +5,7 @@ import pytest
 import torch
 import trimesh
 
-from render_oracle import intrinsics, random_rigid, random_scene, render_pyrender
+from tests.render.render_oracle import intrinsics, random_rigid, random_scene, render_pyrender
 from usl.geometry.cameras import rigid_inverse, transform_points
 from usl.render import SoftRasterSettings, rasterize_soft, rasterize_soft_dense
 

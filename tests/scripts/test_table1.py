@@ -21,8 +21,8 @@ import table1_plan  # noqa: E402
 import table1_summary  # noqa: E402
 from usl.config import load_config  # noqa: E402
 from usl.engine.checkpoint import write_run_checkpoint  # noqa: E402
-from usl.engine.eval_summary import METRICS, PredictorSummary  # noqa: E402
-from usl.engine.report import write_report  # noqa: E402
+from usl.evaluation.summary import METRICS, PredictorSummary  # noqa: E402
+from usl.evaluation.report import write_report  # noqa: E402
 
 HEADER = {"dataset": "scene_shapes", "split": "train", "num_scenes": 8, "num_input_views": 8}
 SEEDS = {"usl2": [0, 1, 2], "usl5": [0, 1, 2], "usl5_vertalign": [4]}  # one row with a single seed

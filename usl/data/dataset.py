@@ -14,12 +14,12 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from usl.config import DataConfig
-from usl.records import RecordsDataset, UslError, decode_mask, decoding, frame_K, frame_pose
+from usl.data.config import DataConfig
+from usl.records import RecordsDataset, decode_mask, decoding, frame_K, frame_pose
+from usl.errors import UslError
 
 from .frames import CategoryIndex, FrameData, decode_frame
 from .mirror import mirror_sample
-from .photometric import jitter_sample
 from .samples import MultiViewSample, TargetView
 from .sampling import sample_other_views
 from .transforms import resize_frame, resize_target_view
@@ -97,11 +97,9 @@ class MultiViewDataset(Dataset):
             seed=int(rng.integers(2**62)),
             true_meshes=true_meshes,
         )
-        # drawn last and only when enabled, so samples without flipping or jitter are unchanged
+        # drawn last and only when enabled, so samples without flipping are unchanged
         if self.cfg.flip_prob > 0 and rng.random() < self.cfg.flip_prob:
             sample = mirror_sample(sample)
-        if self.cfg.color_jitter.enabled:
-            sample = jitter_sample(sample, self.cfg.color_jitter, rng)
         return sample
 
     def scene_index(self, scene_id: str) -> tuple[list[int], list[np.ndarray]]:

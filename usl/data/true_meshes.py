@@ -11,7 +11,8 @@ from typing import Any, Sequence
 import torch
 
 from usl.geometry.cameras import rigid_inverse, transform_points
-from usl.records import UslError, object_mesh
+from usl.records import object_mesh
+from usl.errors import UslError
 
 Tensor = torch.Tensor
 

@@ -2,7 +2,7 @@
 
 ``init_distributed`` reads torchrun's environment (RANK, WORLD_SIZE, LOCAL_RANK, LOCAL_WORLD_SIZE,
 MASTER_ADDR, MASTER_PORT), so the same command works on one machine or several
-(``torchrun --nnodes N --nproc_per_node G --rdzv_endpoint HOST:PORT -m usl.engine.train ...``).
+(``torchrun --nnodes N --nproc_per_node G --rdzv_endpoint HOST:PORT -m usl.cli.train ...``).
 NCCL on CUDA, gloo on CPU. Without torchrun it is a plain single process.
 """
 
@@ -16,7 +16,7 @@ from typing import Any
 import torch
 import torch.distributed as dist
 
-from usl.records.errors import UslError
+from usl.errors import UslError
 
 
 @dataclass(frozen=True)

@@ -21,7 +21,7 @@ from usl.config import Config
 from usl.engine.checkpoint import CheckpointError, resolve_checkpoint
 from usl.engine.curves import plot_curves
 from usl.engine.run_log import CSV_NAME
-from usl.engine.train_cli import COMMAND
+from usl.engine.command import COMMAND
 from usl.engine.validation import CSV_NAME as VALIDATION_CSV
 from usl.engine.validation import PeriodicValidation
 from usl.model.usl_model import USLModel

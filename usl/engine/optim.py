@@ -8,7 +8,7 @@ from typing import Iterable
 import torch
 from torch import nn
 
-from usl.config import OptimConfig
+from usl.engine.config import OptimConfig
 
 
 def build_optimizer(named_params: Iterable[tuple[str, nn.Parameter]], cfg: OptimConfig) -> torch.optim.Optimizer:

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from collections import deque
 
-from usl.records import UslError
+from usl.errors import UslError
 
 
 class TooManySkippedSteps(UslError):

@@ -1,11 +1,10 @@
-"""The training loop of ``usl-train`` (command line: ``usl.engine.train_cli``, which also runs
-``torchrun -m usl.engine.train``): data, guarded steps, logs, checkpoints, exact resume."""
+"""The training loop of ``usl-train`` (command line: ``usl.cli.train``, also run as
+``torchrun -m usl.cli.train``): data, guarded steps, logs, checkpoints, exact resume."""
 
 from __future__ import annotations
 
 import math
 import resource
-import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -23,7 +22,6 @@ from .distributed import DistInfo, all_gather_objects, barrier
 from .feedback import TrainingFeedback
 from .run_log import RunLog
 from .skip_guard import SkipGuard
-from .train_cli import main  # noqa: F401  (usl-train's entry point: parses before torch loads)
 from .train_step import TrainStep
 
 COMMAND = "usl-train"
@@ -214,7 +212,3 @@ class Trainer:
         if self.info.device.type == "cuda":
             return torch.cuda.max_memory_allocated(self.info.device) / 2**20
         return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # Linux reports KiB
-
-
-if __name__ == "__main__":  # torchrun -m usl.engine.train ...
-    sys.exit(main())

@@ -49,23 +49,3 @@ def uniform_laplacian(num_verts: int, edges: Tensor, dtype: torch.dtype = torch.
     indices = torch.cat([torch.stack([rows, cols]), torch.stack([connected, connected])], dim=1)
     values = torch.cat([-1.0 / degree[rows], torch.ones_like(connected, dtype=dtype)])
     return torch.sparse_coo_tensor(indices, values, (num_verts, num_verts), check_invariants=True).coalesce()
-
-
-def laplacian_eigenbasis(num_verts: int, edges: Tensor, count: int) -> Tensor:
-    """The ``count`` smoothest fields on a mesh's vertices, as (V, count) float32 columns of unit RMS.
-
-    They are the eigenvectors of the combinatorial graph Laplacian ``D - A`` with the smallest
-    eigenvalues (the first is constant): the mesh's analogue of the low-degree spherical harmonics,
-    so ``basis @ coefficients`` can only bend a mesh smoothly. Eigenvectors of a repeated eigenvalue
-    are defined up to a rotation of their space, which differs between eigensolvers, so a model
-    built on this basis must save the basis with its weights.
-    """
-    if not 0 < count <= num_verts:
-        raise ValueError(f"laplacian_eigenbasis: count must be in 1..{num_verts} (the vertices), got {count}")
-    edges = edges.long().cpu()
-    adjacency = torch.zeros(num_verts, num_verts, dtype=torch.float64)
-    adjacency[edges[:, 0], edges[:, 1]] = 1.0
-    adjacency[edges[:, 1], edges[:, 0]] = 1.0
-    laplacian = torch.diag(adjacency.sum(dim=1)) - adjacency
-    _, vectors = torch.linalg.eigh(laplacian)
-    return (vectors[:, :count] * num_verts**0.5).float()

@@ -3,7 +3,6 @@ and Mesh R-CNN's 3D mesh losses for the 3D-supervised baseline."""
 
 from usl.losses.mesh3d import ChamferNormal, chamfer_normal_loss
 from usl.losses.regularizers import (
-    depth_laplacian_loss,
     laplacian_smoothing_loss,
     mesh_edge_loss,
     normal_consistency,
@@ -27,7 +26,6 @@ __all__ = [
     "SilhouetteBCE",
     "chamfer_normal_loss",
     "combine_losses",
-    "depth_laplacian_loss",
     "l2d_loss",
     "laplacian_smoothing_loss",
     "normal_consistency",

@@ -55,18 +55,6 @@ def laplacian_smoothing_loss(meshes: Meshes) -> Tensor:
     return _mean_per_mesh(torch.linalg.vector_norm(lap, dim=1), meshes.verts_packed_to_mesh_idx(), len(meshes))
 
 
-def depth_laplacian_loss(meshes: Meshes) -> Tensor:
-    """|(L V)_i · ŵ|: the uniform Laplacian's w component, per vertex, averaged per mesh, then over meshes.
-
-    For meshes in the normalized cube (``usl.geometry.frustum``): x and y fix a vertex's pixel in
-    the input view and w its inverse depth, so w moves it along its own input-view ray, where the
-    input silhouette cannot see it. This smooths only that direction (spikes and folds along the
-    rays) and leaves the silhouette's outline, which l_xent fits, free.
-    """
-    lap_w = torch.sparse.mm(meshes.laplacian_packed(), meshes.verts_packed()[:, 2:])
-    return _mean_per_mesh(lap_w[:, 0].abs(), meshes.verts_packed_to_mesh_idx(), len(meshes))
-
-
 def normal_consistency(verts: Tensor, faces: Tensor, pairs: Tensor) -> Tensor:
     """Mean ``1 - cos`` between the normals of the two faces on each edge, per mesh: (N,).
 

@@ -1,7 +1,7 @@
 """A loss weight that changes as training proceeds: piecewise linear in the iteration.
 
 Why: l_dist moves the layout from anywhere in the frustum, and its gradient at the shape head is
-one to two orders of magnitude above the gated l_xent's (issue F's measurements). Early on that
+one to two orders of magnitude above the gated l_xent's (measured on the tiny recipe). Early on that
 is what is wanted; once the silhouettes overlap it drowns the pixel-wise shape signal. A schedule
 on l_dist's factor keeps the paper's loss (``l_2D = f(t) l_dist + 1[IoU > 0.5] l_xent``) and only
 shifts the balance between its two terms over time.

@@ -2,9 +2,8 @@
 
 Here L_2D is Mask R-CNN's detection losses (RPN and box head), L_3D the mean of the
 per-pair ``l2d_loss`` over objects and views, and
-``L_reg = edge * L_edge + offset_l2 * ½‖dV‖² + laplacian * L_laplac + normal * L_normal
-+ depth_laplacian * L_laplac,w`` (normal consistency and the Laplacian along the input rays, not
-in the paper: options). Inside L_3D,
+``L_reg = edge * L_edge + offset_l2 * ½‖dV‖² + laplacian * L_laplac + normal * L_normal``
+(normal consistency is not in the paper: an option). Inside L_3D,
 ``dist`` weighs l_dist (``l_2D = dist * l_dist + 1[IoU > t] l_xent``): 0 is Table 1's "w/o l_dist".
 
 The paper's recipes (``LossWeights.recipe(name)``):
@@ -34,8 +33,6 @@ class LossWeights:
     edge: float = 0.0  # L_edge (Mesh R-CNN's edge length)
     offset_l2: float = 0.05  # ½‖dV‖² on pre-tanh offsets
     laplacian: float = 0.0  # uniform Laplacian smoothing
-    # the uniform Laplacian along the input view's rays only (the cube's w axis; README)
-    depth_laplacian: float = 0.0
     normal: float = 0.0  # normal consistency (1 - cos between neighbouring faces' normals)
     # l_dist inside L_3D (times loss.dist_scale and loss.dist_schedule). 0 is Table 1's "w/o
     # l_dist": l_dist is not computed at all, so it adds exactly no gradient
@@ -65,14 +62,13 @@ def combine_losses(
     offset_l2: Tensor | None = None,
     laplacian: Tensor | None = None,
     normal: Tensor | None = None,
-    depth_laplacian: Tensor | None = None,
 ) -> tuple[Tensor, dict[str, Tensor]]:
     """Weighted sum of the objective's terms.
 
     A term may be None only if its weight is zero (the caller then need not compute it);
     a non-zero weight without its term is an error, so a recipe cannot silently lose a term.
     Returns the total and a dict of the weighted parts (for logging), keyed
-    ``"det/<name>"``, ``"l3d"``, ``"edge"``, ``"offset_l2"``, ``"laplacian"``, ``"normal"``, ``"depth_laplacian"``.
+    ``"det/<name>"``, ``"l3d"``, ``"edge"``, ``"offset_l2"``, ``"laplacian"``, ``"normal"``.
     """
     parts: dict[str, Tensor] = {}
     if weights.mu_2d:
@@ -86,7 +82,6 @@ def combine_losses(
         "offset_l2": offset_l2,
         "laplacian": laplacian,
         "normal": normal,
-        "depth_laplacian": depth_laplacian,
     }
     for name, term in regularizers.items():
         weight = weights.mu_reg * getattr(weights, name)

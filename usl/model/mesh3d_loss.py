@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import torch
 
-from usl.config import Mesh3DLossConfig
+from usl.model.config import Mesh3DLossConfig
 from usl.data.samples import MultiViewSample
 from usl.geometry import Meshes, sample_points_from_meshes
 from usl.losses import chamfer_normal_loss, mesh_edge_loss

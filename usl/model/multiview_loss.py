@@ -23,12 +23,11 @@ from typing import NamedTuple
 
 import torch
 
-from usl.config import LossConfig
+from usl.model.config import LossConfig
 from usl.data.samples import MultiViewSample
 from usl.geometry import Meshes, faces_on_each_edge, sample_points_from_meshes
 from usl.geometry.cameras import relative_transform, transform_points
 from usl.losses import (
-    depth_laplacian_loss,
     l2d_loss,
     laplacian_smoothing_loss,
     mesh_edge_loss,
@@ -44,7 +43,7 @@ from usl.render import render_dynamic
 Tensor = torch.Tensor
 
 # the shape regularizers' names, as LossWeights and combine_losses call them
-REGULARIZERS = ("edge", "offset_l2", "laplacian", "normal", "depth_laplacian")
+REGULARIZERS = ("edge", "offset_l2", "laplacian", "normal")
 
 
 @dataclass
@@ -168,8 +167,6 @@ def _gather_pairs(
 ) -> None:
     generator = torch.Generator(device=verts.device).manual_seed(sample.seed)
     surface = sample_points_from_meshes(Meshes.from_shared_topology(verts, faces), cfg.mesh_points, generator)
-    if cfg.dist_vertices:
-        surface = torch.cat([surface, verts], dim=1)
     input_pose = sample.views[0].cam_to_world
     num_pairs = sum(int(view.present.sum()) for view in sample.views)
     for position, view in enumerate(sample.views):
@@ -209,14 +206,12 @@ def shape_regularizers(
         rows = slice(starts[index], starts[index + 1])
         if starts[index + 1] == starts[index]:
             continue
-        if need.get("edge") or need.get("laplacian") or need.get("depth_laplacian"):
+        if need.get("edge") or need.get("laplacian"):
             meshes = Meshes.from_shared_topology(verts_cube[rows].float(), faces)
         if need.get("edge"):
             result["edge"] = result["edge"] + mesh_edge_loss(meshes) / batch
         if need.get("laplacian"):
             result["laplacian"] = result["laplacian"] + laplacian_smoothing_loss(meshes) / batch
-        if need.get("depth_laplacian"):
-            result["depth_laplacian"] = result["depth_laplacian"] + depth_laplacian_loss(meshes) / batch
         if need.get("normal"):
             result["normal"] = (
                 result["normal"] + normal_consistency(verts_cube[rows].float(), faces, pairs).mean() / batch

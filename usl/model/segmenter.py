@@ -20,7 +20,7 @@ import numpy as np
 import torch
 from PIL import Image
 
-from .coco import COCO_CATEGORY_IDS, TORCHVISION_COCO_IDS
+from data_specs import coco_category_ids
 from .backbone import IMAGENET_MEAN, IMAGENET_STD, BackboneConfig, ResNetConfig
 from .detector import DetectorConfig, MaskRCNN, ROIHeadsConfig
 from .detector.mask_head import paste_masks_in_image
@@ -29,6 +29,8 @@ from .pretrained import WeightsError, init_detector, read_weights
 from .pretrained.layouts import DETECTRON2_RCNN, TORCHVISION_MASK_RCNN
 
 Tensor = torch.Tensor
+# torchvision's COCO models keep a slot per id 1..90 (the gaps never fire): class k is id k + 1.
+TORCHVISION_COCO_IDS = tuple(range(1, 91))
 
 
 @dataclass
@@ -65,7 +67,7 @@ def detector_for_weights(path: Union[str, Path], cfg: SegmenterConfig) -> tuple[
     weights = read_weights(path)
     point_rend = any(".point_head." in k or "mask_point_head." in k for k in weights.tensors)
     if weights.format == "detectron2" and DETECTRON2_RCNN.signature in weights.tensors:
-        classes, stride_in_1x1, category_ids = 80, True, COCO_CATEGORY_IDS
+        classes, stride_in_1x1, category_ids = 80, True, coco_category_ids()
     elif weights.format == "torchvision" and TORCHVISION_MASK_RCNN.signature in weights.tensors:
         classes, stride_in_1x1, category_ids = 90, False, TORCHVISION_COCO_IDS
     else:

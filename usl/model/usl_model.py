@@ -17,7 +17,7 @@ from typing import Sequence
 import torch
 from torch import nn
 
-from usl.config import LossConfig, ModelConfig
+from usl.model.config import LossConfig, ModelConfig
 from usl.data.frames import FrameData
 from usl.data.samples import MultiViewSample
 from usl.geometry import cube_to_frustum
@@ -83,9 +83,7 @@ class USLModel(nn.Module):
         in_channels = shapes[cfg.layout.in_features[0]].channels
         self.layout_head = LayoutHead(in_channels, len(cfg.categories), cfg.layout, cfg.layout_range)
         roi_dim = in_channels * cfg.layout.pooler_resolution**2  # the global shape stage reads the layout head's RoIs
-        self.shape_head = ShapeHead(
-            {**shapes, IMAGE_MAP: ShapeSpec(channels=3, stride=1)}, cfg.shape, len(cfg.categories), roi_dim
-        )
+        self.shape_head = ShapeHead({**shapes, IMAGE_MAP: ShapeSpec(channels=3, stride=1)}, cfg.shape, roi_dim)
         if cfg.init_weights and load_init_weights:
             print_report(init_detector(self.detector, cfg.init_weights, cfg.init_format))
         self.register_buffer("pixel_mean", torch.tensor(IMAGENET_MEAN).view(3, 1, 1), persistent=False)
@@ -127,7 +125,7 @@ class USLModel(nn.Module):
         flat_K = torch.cat([k.float().expand(n, 3, 3) for k, n in zip(K, counts)])
         pooled = self.layout_pooler(features, boxes)
         layout = self.layout_head(pooled, flat_labels, flat_boxes, flat_K)
-        shape = self.shape_head(features, boxes, flat_labels, pooled)
+        shape = self.shape_head(features, boxes, pooled)
         with autocast_off(shape.verts.device.type):
             verts_cam = cube_to_frustum(shape.verts.float(), flat_boxes, flat_K, layout.z, layout.rho)
         return ObjectOutputs(layout, shape, verts_cam, counts, flat_boxes, flat_K)

@@ -24,7 +24,6 @@ from .encode import (
     object_mesh,
     object_row,
 )
-from .errors import UslError
 from .manifest import load_manifest
 from .schema import SCHEMA_VERSION
 from .shards import ShardResult, ShardWriter
@@ -37,7 +36,6 @@ __all__ = [
     "ShardResult",
     "ShardWriter",
     "Skip",
-    "UslError",
     "decode_depth",
     "decode_image",
     "decode_mask",

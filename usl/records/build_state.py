@@ -17,7 +17,7 @@ from dataclasses import asdict
 from pathlib import Path
 from typing import Any, Iterable
 
-from .errors import UslError
+from usl.errors import UslError
 from .atomic import write_json_atomic
 from .schema import shard_file
 from .shards import ShardResult, shard_paths, shard_temp_path, verify_file

@@ -15,7 +15,7 @@ import yaml
 from data_specs import load_schema_spec
 
 from .atomic import write_text_atomic
-from .errors import UslError
+from usl.errors import UslError
 from .schema import SCHEMA_VERSION
 
 CARD = "README.md"

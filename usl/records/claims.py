@@ -27,7 +27,7 @@ from functools import lru_cache
 from pathlib import Path
 from typing import Any, Callable
 
-from .errors import UslError
+from usl.errors import UslError
 from .tempfiles import process_token, temp_files_of
 
 HEARTBEAT_SECONDS = 5.0

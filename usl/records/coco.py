@@ -21,7 +21,7 @@ from tqdm import tqdm
 
 from .atomic import write_json_atomic
 from .encode import image_bytes
-from .errors import UslError
+from usl.errors import UslError
 from .manifest import usl_version
 from .reader import RecordsDataset
 

@@ -15,7 +15,7 @@ import cv2
 import numpy as np
 from pycocotools import mask as mask_utils
 
-from .errors import UslError, one_line
+from usl.errors import UslError, one_line
 
 DEPTH_SCALE = 1000.0  # depth PNG stores millimetres
 MAX_DEPTH_MM = np.iinfo(np.uint16).max

@@ -18,7 +18,7 @@ from tqdm import tqdm
 
 from .build_state import BuildState, identity_difference, read_build_file
 from .claims import Owner
-from .errors import UslError
+from usl.errors import UslError
 from .manifest import build_manifest, publish_dataset
 from .shards import ShardResult, size_problem
 from .tempfiles import temp_path

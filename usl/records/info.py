@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 
 from .encode import decode_image, decode_mask, decoding
-from .errors import UslError, one_line
+from usl.errors import UslError, one_line
 from .manifest import load_manifest
 from .reader import RecordsDataset
 from .shards import read_shard_table

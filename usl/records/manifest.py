@@ -8,7 +8,7 @@ from typing import Any
 
 from .atomic import write_json_atomic
 from .card import write_dataset_card
-from .errors import UslError
+from usl.errors import UslError
 from .schema import SCHEMA_VERSION, check_version
 
 MANIFEST = "manifest.json"

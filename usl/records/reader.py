@@ -17,7 +17,7 @@ import pyarrow.parquet as pq
 import torch
 from torch.utils.data import IterableDataset, get_worker_info
 
-from .errors import UslError, one_line
+from usl.errors import UslError, one_line
 from .manifest import load_manifest
 from .schema import read_metadata
 from .shards import VERIFY_MODES, open_shard, verify_file

@@ -10,7 +10,7 @@ import pyarrow as pa
 
 from data_specs import load_schema_spec
 
-from .errors import UslError
+from usl.errors import UslError
 
 SCHEMA_VERSION = 2  # what writers produce; readers also read every version in KNOWN_VERSIONS
 KNOWN_VERSIONS = (1, 2)

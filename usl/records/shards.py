@@ -29,7 +29,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from .encode import SceneRecord, Skip
-from .errors import UslError, one_line
+from usl.errors import UslError, one_line
 from .schema import dataset_schema, required_fields, shard_file, table_schema
 from .tempfiles import process_token, temp_path
 

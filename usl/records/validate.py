@@ -18,7 +18,7 @@ from tqdm import tqdm
 
 from .card import CARD, card_configs
 from .encode import decode_image, decode_mask, encode_mask
-from .errors import UslError, one_line
+from usl.errors import UslError, one_line
 from .manifest import load_manifest
 from .schema import HF_METADATA_KEY, SCHEMA_VERSION, dataset_schema, read_metadata, required_fields, table_schema
 from .shards import verify_file

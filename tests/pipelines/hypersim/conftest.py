@@ -1,13 +1,10 @@
 """Session fixtures: the Hypersim inputs of ``hypersim_inputs`` written once, and conversions of them."""
 
-import sys
 from pathlib import Path
 
 import pytest
 
-sys.path.insert(0, str(Path(__file__).parent))
-
-from hypersim_inputs import Inputs, convert, write_inputs  # noqa: E402
+from tests.pipelines.hypersim.hypersim_inputs import Inputs, convert, write_inputs
 
 
 @pytest.fixture(scope="session")

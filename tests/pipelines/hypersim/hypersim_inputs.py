@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hypersim_fixture import (
+from tests.pipelines.hypersim.hypersim_fixture import (
     SyntheticScene,
     edit_hdf5,
     make_scene,

@@ -4,7 +4,7 @@ import shutil
 
 import pyarrow.parquet as pq
 import pytest
-from hypersim_inputs import convert
+from tests.pipelines.hypersim.hypersim_inputs import convert
 
 from pipelines.hypersim.cli import main
 from usl.records import RecordsDataset, decode_image, load_manifest

@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 import torch
-from hypersim_inputs import MIN_PIXELS, NAN_PATCH
-from hypersim_fixture import render
+from tests.pipelines.hypersim.hypersim_inputs import MIN_PIXELS, NAN_PATCH
+from tests.pipelines.hypersim.hypersim_fixture import render
 
 from usl.geometry.cameras import project, scale_intrinsics, transform_points, unproject
 from usl.records import RecordsDataset, decode_depth, decode_image, decode_mask, frame_K, frame_pose, load_manifest

@@ -7,7 +7,14 @@ import h5py
 import numpy as np
 import pytest
 import torch
-from hypersim_fixture import CANONICAL_M, TILT_SHIFT_M, make_scene, render, write_exr, write_hdf5
+from tests.pipelines.hypersim.hypersim_fixture import (
+    CANONICAL_M,
+    TILT_SHIFT_M,
+    make_scene,
+    render,
+    write_exr,
+    write_hdf5,
+)
 
 from pipelines.hypersim.camera import (
     check_camera_model,
@@ -22,7 +29,8 @@ from pipelines.hypersim.paths import FrameSkip, TrajectoryPaths
 from pipelines.hypersim.resample import Resampler
 from pipelines.hypersim.tonemap import apply_tonemap, percentile, tonemap_scale
 from usl.geometry.cameras import project, scale_intrinsics
-from usl.records import UslError, make_instance
+from usl.records import make_instance
+from usl.errors import UslError
 
 # --- cameras -------------------------------------------------------------------------------------
 

@@ -10,7 +10,8 @@ from pycocotools import mask as mask_utils
 from pipelines.scannet.convert import ConvertOptions, track_scan
 from pipelines.scannet.grid import OutputGrid
 from pipelines.scannet.quality import tracking_quality
-from pipelines.scannet.scan import Calibration, half_pixel_intrinsics, open_scan
+from pipelines.scannet.convert import open_scan
+from pipelines.scannet.scan import Calibration, half_pixel_intrinsics
 from pipelines.scannet.scannet_labels import ScanNetLabelsSource
 from pipelines.scannet.synthetic import SyntheticScan
 from pipelines.scannet.tracker import TrackerConfig

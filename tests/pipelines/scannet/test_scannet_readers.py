@@ -13,7 +13,7 @@ from pipelines.scannet.exported import ExportedScan
 from pipelines.scannet.scan import encoded_image_size, rigid_pose
 from pipelines.scannet.sens import SensScan
 from pipelines.scannet.synthetic import SyntheticScan, write_exported, write_sens
-from usl.records import UslError
+from usl.errors import UslError
 
 
 def _check_scan_matches(reader, synthetic) -> None:

@@ -1,13 +1,10 @@
 """A tiny Scene-Shapes dataset built once per session through the real CLI."""
 
-import sys
 from pathlib import Path
 
 import pytest
 
-sys.path.insert(0, str(Path(__file__).parent))
-
-from pipelines.scene_shapes.cli import main  # noqa: E402
+from pipelines.scene_shapes.cli import main
 
 TINY = [
     "--num-scenes",

@@ -15,7 +15,8 @@ from pipelines.scene_shapes.primitives import BODY
 from pipelines.scene_shapes.scene import SceneConfig, SceneUnit, build_scene
 from pipelines.scene_shapes.shapes import ShapeModel, procedural_refs
 from usl.geometry.cameras import project
-from usl.records import UslError, decode_depth, decode_mask
+from usl.records import decode_depth, decode_mask
+from usl.errors import UslError
 
 CATEGORY_IDS = (("chair", 1), ("sofa", 2), ("table", 3))
 FRACTIONS = (("train", 0.8), ("val", 0.1), ("test", 0.1))

@@ -5,7 +5,7 @@ import json
 
 import numpy as np
 import pytest
-from scene_shapes_oracle import backproject, distance_to_mesh, iou, render_depth_alone
+from tests.pipelines.scene_shapes.scene_shapes_oracle import backproject, distance_to_mesh, iou, render_depth_alone
 
 from pipelines.scene_shapes.cli import main
 from usl.records import RecordsDataset, decode_depth, decode_mask, frame_K, frame_pose, load_manifest, object_mesh

@@ -32,7 +32,6 @@ class ResNetConfig:
     # Bottleneck stride on the first 1x1 conv (original MSRA ResNet, detectron2 weights) instead of
     # the 3x3 (v1.5, torchvision). None: as the model's init weights need (ModelConfig resolves it).
     stride_in_1x1: Optional[bool] = None
-    weights: Optional[str] = None  # deprecated: moved to model.init_weights (ModelConfig forwards it)
 
 
 @dataclass
@@ -101,11 +100,6 @@ def _plain_name(stage: str) -> str:
 
 
 def _build_resnet(cfg: BackboneConfig) -> ResNet:
-    if cfg.resnet.weights:
-        raise ValueError(
-            f"backbone.resnet.weights={cfg.resnet.weights!r} no longer loads here: initialise the whole model "
-            "with model.init_weights (usl.model.pretrained.init_detector)"
-        )
     resnet = ResNet(
         cfg.resnet.depth, cfg.resnet.base_channels, cfg.resnet.norm, stride_in_1x1=bool(cfg.resnet.stride_in_1x1)
     )

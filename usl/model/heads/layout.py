@@ -8,7 +8,7 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
-from usl.config import LayoutHeadConfig, LayoutRange
+from usl.model.config import LayoutHeadConfig, LayoutRange
 from usl.geometry.cameras import pixel_rays
 
 Tensor = torch.Tensor

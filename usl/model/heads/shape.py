@@ -10,13 +10,10 @@ enters the next stage's first GraphConv. As the paper states, V_0 (the unit sphe
 lie in [-1, 1]; V itself is not clamped (a clamp would stop the gradient of any vertex that
 touches the cube's faces), and the frustum map guards points beyond the far plane
 (``usl.geometry.frustum``). The pre-tanh offsets are kept for the ½‖dV‖² regularizer.
-``category_templates`` (an option, off in the paper's recipes) starts each object from its
-category's learned mean shape ``V_0 = sphere + T_c`` instead of the bare sphere. ``global_stage``
+``global_stage``
 (an option, on in ``tiny``) adds a stage before the others that sees the whole object: an MLP from
 the box's flattened RoIAlign features to every vertex's offset, ``V_g = V_0 + tanh(MLP)`` (CMR's
-shape decoder); its pre-tanh offsets join the regularizer's like any stage's. With ``global_basis``
-the MLP predicts coefficients of the sphere's smoothest fields (``laplacian_eigenbasis``), and the
-offsets are their combination, so the stage bends the sphere smoothly.
+shape decoder); its pre-tanh offsets join the regularizer's like any stage's.
 """
 
 from __future__ import annotations
@@ -27,8 +24,8 @@ from typing import Mapping, Optional
 import torch
 from torch import nn
 
-from usl.config import ShapeHeadConfig
-from usl.geometry import ico_sphere, laplacian_eigenbasis, unique_edges
+from usl.model.config import ShapeHeadConfig
+from usl.geometry import ico_sphere, unique_edges
 from usl.model.backbone import ShapeSpec
 
 from .graph_conv import GraphConv
@@ -98,12 +95,10 @@ def global_deformation_mlp(roi_dim: int, width: int, num_outputs: int) -> nn.Seq
 
 class ShapeHead(nn.Module):
     """``input_shape``: the backbone's maps by name; ``cfg.features`` picks and orders the sampled ones.
-    ``num_classes`` sizes the per-category templates (``cfg.category_templates``); ``roi_dim`` is the
-    size of one object's flattened RoI features, the global stage's input (``cfg.global_stage``)."""
+    ``roi_dim`` is the size of one object's flattened RoI features, the global stage's input
+    (``cfg.global_stage``)."""
 
-    def __init__(
-        self, input_shape: Mapping[str, ShapeSpec], cfg: ShapeHeadConfig, num_classes: int = 1, roi_dim: int = 0
-    ):
+    def __init__(self, input_shape: Mapping[str, ShapeSpec], cfg: ShapeHeadConfig, roi_dim: int = 0):
         super().__init__()
         missing = [name for name in cfg.features if name not in input_shape]
         if missing:
@@ -112,8 +107,6 @@ class ShapeHead(nn.Module):
         self.strides = [input_shape[name].stride for name in cfg.features]
         verts, faces = ico_sphere(cfg.ico_level)
         self.register_buffer("sphere_verts", verts, persistent=False)
-        # zeros: every template starts as the sphere, so a fresh head is the paper's
-        self.templates = nn.Parameter(torch.zeros(num_classes, *verts.shape)) if cfg.category_templates else None
         self.register_buffer("faces", faces, persistent=False)
         self.register_buffer("edges", unique_edges(faces, verts.shape[0]), persistent=False)
         self.poolers = (
@@ -125,15 +118,7 @@ class ShapeHead(nn.Module):
             else None
         )
         feature_dim = sum(input_shape[name].channels for name in cfg.features)
-        self.global_mlp = (
-            global_deformation_mlp(roi_dim, cfg.global_stage, cfg.global_basis or len(verts))
-            if cfg.global_stage
-            else None
-        )
-        # persistent: a repeated eigenvalue's eigenvectors differ between eigensolvers, so a
-        # checkpoint carries the basis its coefficients were learnt in
-        basis = laplacian_eigenbasis(len(verts), self.edges, cfg.global_basis) if cfg.global_basis else None
-        self.register_buffer("global_basis", basis)
+        self.global_mlp = global_deformation_mlp(roi_dim, cfg.global_stage, len(verts)) if cfg.global_stage else None
         self.stages = nn.ModuleList(
             RefinementStage(
                 feature_dim,
@@ -150,22 +135,16 @@ class ShapeHead(nn.Module):
         self,
         features: Mapping[str, Tensor],
         boxes: list[Tensor],
-        labels: Tensor | None = None,
         roi: Tensor | None = None,
     ) -> ShapePrediction:
         """Deform one sphere per box; ``boxes`` is a list over images of (N_i, 4) input-pixel boxes,
-        ``labels`` the (N,) flat category indices (needed with category templates), ``roi`` the (N, ...)
-        RoI features of the boxes (needed with the global stage)."""
+        ``roi`` the (N, ...) RoI features of the boxes (needed with the global stage)."""
         flat_boxes = torch.cat(boxes).float()
         image_index = torch.repeat_interleave(
             torch.arange(len(boxes), device=flat_boxes.device),
             torch.tensor([len(b) for b in boxes], device=flat_boxes.device),
         )
         verts = self.sphere_verts.expand(len(flat_boxes), -1, -1)
-        if self.templates is not None:
-            if labels is None:
-                raise ValueError("ShapeHead: model.shape.category_templates needs the objects' labels")
-            verts = verts + self.templates[labels.long()]
         maps = [features[name] for name in self.cfg.features]
         roi_features = None if self.poolers is None else [pooler(features, boxes) for pooler in self.poolers]
         stage_verts, offsets, previous = [], [], None
@@ -173,8 +152,6 @@ class ShapeHead(nn.Module):
             if roi is None:
                 raise ValueError("model.shape.global_stage needs the boxes' RoI features (roi=...)")
             offset = self.global_mlp(roi.flatten(1)).float().unflatten(-1, (-1, 3))
-            if self.global_basis is not None:
-                offset = self.global_basis @ offset  # (V, K) @ (N, K, 3): smooth fields' combination
             verts = verts + torch.tanh(offset)
             stage_verts.append(verts)
             offsets.append(offset)

@@ -1,0 +1,168 @@
+"""The evaluation behind ``usl-eval`` (command line: ``usl.cli.evaluate``): every predictor on
+the input views of a split, scene by scene, into per-object rows, summaries and pictures.
+
+The metric definitions are in ``eval_render`` (pairs), ``eval_scene`` (aggregation),
+``eval_views`` (which views), ``eval_detection`` (matching, AP) and ``baselines``; the pictures
+and their index in ``eval_gallery``.
+"""
+
+from __future__ import annotations
+
+import argparse
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any, Sequence
+
+from tqdm import tqdm
+
+from data_specs import DATASETS, load_dataset_spec
+from usl.data.frames import CategoryIndex
+from usl.evaluation.baselines import FixedDepthBaseline, LayoutOnly, TrueDepth, spec_baselines
+from usl.evaluation.choices import MODEL_ROWS, ROWS
+from usl.evaluation.detection import CocoDetections
+from usl.evaluation.gallery import Gallery
+from usl.evaluation.scene import EvalConfig, evaluate_scene
+from usl.evaluation.summary import DetectionCounts, PredictorSummary, summarize
+from usl.evaluation.types import Predictor
+from usl.evaluation.views import view_selection
+from usl.evaluation.report import choose_layout
+from usl.records import RecordsDataset
+from usl.errors import UslError
+
+
+@dataclass
+class EvalRun:
+    header: dict[str, Any]
+    summaries: list[PredictorSummary]
+    rows: list[dict[str, Any]]
+    layout: str
+    pictures_index: Path | None = None
+
+
+def dataset_spec(manifest: dict[str, Any]) -> dict[str, Any]:
+    """The dataset's spec (data_specs, when it is a known dataset) overlaid with the manifest's own facts."""
+    base = dict(load_dataset_spec(manifest["name"])) if manifest.get("name") in DATASETS else {}
+    return {
+        **base,
+        **{k: v for k, v in manifest.items() if k in ("name", "categories", "layout") or (k == "baselines" and v)},
+    }
+
+
+def run_evaluation(
+    root: str | Path,
+    split: str,
+    predictors: Sequence[Predictor],
+    config: EvalConfig,
+    scene_ids: Sequence[str] | None = None,
+    max_scenes: int | None = None,
+    pictures_dir: str | Path | None = None,
+    num_pictures: int = 0,
+    table_layout: str = "auto",
+    progress: bool = True,
+    pictures_by: str = "spread",
+    picture_score: float = 0.5,
+) -> EvalRun:
+    """Evaluate ``predictors`` on a split; ``num_pictures`` input views chosen ``pictures_by`` (see
+    ``eval_gallery``) are drawn into ``pictures_dir`` with an ``index.md``."""
+    names = [p.name for p in predictors]
+    if len(set(names)) != len(names):
+        raise UslError(f"predictor names must be unique, got {names}")
+    dataset = RecordsDataset(root, split)
+    categories = CategoryIndex(dataset.categories)
+    spec = dataset_spec(dataset.manifest)
+    selection = view_selection(config.other_views, spec)
+    scenes = list(scene_ids) if scene_ids else list(dataset.scene_ids)
+    missing = [s for s in scenes if s not in dataset.locations]
+    if missing:
+        raise UslError(f"{root}: split {split!r} has no scene(s) {missing[:5]}")
+    scenes = scenes[:max_scenes] if max_scenes else scenes
+    if not scenes:
+        raise UslError(f"{root}: split {split!r} has no scenes to evaluate")
+    coco = {
+        p: CocoDetections(categories.ids, categories.names) for p, pr in enumerate(predictors) if pr.uses_detections
+    }
+    counts = {pr.name: DetectionCounts() for pr in predictors if pr.uses_detections}
+    rows: list[dict[str, Any]] = []
+    num_inputs = 0
+    gallery = Gallery(
+        Path(pictures_dir or "."),
+        num_pictures if pictures_dir else 0,
+        pictures_by,
+        predictors,
+        categories,
+        picture_score,
+    )
+    gallery.start(len(scenes))
+    bar = tqdm(scenes, desc=f"evaluating {dataset.manifest['name']}/{split}", unit="scene", disable=not progress)
+    for scene_index, scene_id in enumerate(bar):
+        outcome = evaluate_scene(dataset, scene_id, predictors, categories, selection, config, coco)
+        rows += outcome.rows
+        num_inputs += len(outcome.inputs)
+        for pr in outcome.predictions:
+            if predictors[pr.predictor].uses_detections:
+                frame = outcome.inputs[pr.inp].frame
+                matched = int((pr.pred.instance_ids >= 0).sum())
+                counts[predictors[pr.predictor].name].add(len(frame.instance_ids), len(pr.pred), matched)
+        gallery.scene_done(dataset, scene_index, outcome)
+    if not rows:
+        raise UslError(f"{root}: split {split!r}: none of its {num_inputs} input view(s) has an object to evaluate")
+    gallery.finish(dataset, rows, selection, config)
+    average_precision = {predictors[p].name: c.evaluate() for p, c in coco.items()}
+    summaries = summarize(predictors, rows, counts, average_precision)
+    header = {
+        "dataset": dataset.manifest["name"],
+        "root": str(root),
+        "split": split,
+        "num_scenes": len(scenes),
+        "num_input_views": num_inputs,
+        "config": asdict(config),
+    }
+    layout = choose_layout(header["dataset"], summaries) if table_layout == "auto" else table_layout
+    return EvalRun(header, summaries, rows, layout, gallery.write_index(rows))
+
+
+def build_predictors(args: argparse.Namespace, spec: dict[str, Any]) -> tuple[list[Predictor], dict[str, Any] | None]:
+    """The table rows asked for on the command line, in the paper's order, and the checkpoint the
+    model rows score (path, iteration, supervision, row name; None without model rows)."""
+    wanted = (
+        [r.strip() for r in args.rows.split(",") if r.strip()]
+        if args.rows
+        else (["random", "fixed"] + (["model", "layout_only"] if args.checkpoint else []))
+    )
+    unknown = [r for r in wanted if r not in ROWS]
+    if unknown:
+        raise UslError(f"--rows: unknown row(s) {unknown}; choose from {', '.join(ROWS)}")
+    needs_model = [r for r in wanted if r in MODEL_ROWS]
+    if needs_model and not args.checkpoint:
+        raise UslError(f"--rows {','.join(needs_model)} need a --checkpoint")
+    baselines = spec_baselines(spec.get("baselines") or {}, seed=args.seed, level=args.sphere_level)
+    for row in ("random", "fixed", "sphere_true_depth"):
+        key = "fixed" if row == "sphere_true_depth" else row
+        if row in wanted and key not in baselines:
+            raise UslError(
+                f"--rows {row}: the dataset spec of {spec.get('name')!r} has no {key}_depth baseline parameters"
+            )
+    model = detector = scored = None
+    if needs_model:
+        from usl.evaluation.model import model_predictors  # imports the model only when it is used
+
+        model, detector, scored = model_predictors(
+            args.checkpoint, args.device, [c["name"] for c in spec["categories"]], args.model_name
+        )
+    made: dict[str, Predictor] = {}
+    for row in wanted:
+        if row in ("random", "fixed"):
+            made[row] = baselines[row]
+        elif row == "model":
+            made[row] = model
+        elif row == "detections":
+            made[row] = detector
+        elif row == "layout_only":
+            made[row] = LayoutOnly(model, level=args.sphere_level, name=f"Layout-only ({model.name})")
+        elif row == "sphere_true_depth":
+            fixed = baselines["fixed"]
+            sphere = FixedDepthBaseline(fixed.z, fixed.rho, level=args.sphere_level, name="Sphere-only")
+            made[row] = TrueDepth(sphere, args.true_depth_source, name="Sphere-only w/ true depth")
+        elif row == "model_true_depth":
+            made[row] = TrueDepth(model, args.true_depth_source)
+    return list(made.values()), scored

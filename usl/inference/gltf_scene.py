@@ -1,0 +1,122 @@
+"""Predicted objects as a glTF-ready trimesh Scene, in glTF's own conventions.
+
+glTF is +Y up, and a glTF camera looks down its local -Z; usl works in OpenCV camera axes (x right,
+y down, z forward). With ``axes="gltf"`` (the default of ``usl-predict``) points are written as
+``diag(1, -1, -1) @ X_opencv``, so every glTF viewer shows the scene upright and the camera node
+sits at the origin with the identity pose. With ``axes="opencv"`` the points stay as they are and
+the camera node carries the flip instead: the view through the camera is the same either way.
+
+The scene holds one node per object (``<index>_<category>``; ``extras``: category, category id,
+score, z, rho, box), a perspective camera matching the input view (``yfov`` from K and the image
+height, ``aspectRatio`` from K and the width; glTF has no principal point, so an off-centre one is
+not represented) and the input image as a textured plane filling the camera's view behind the
+objects (node ``input_image``).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Sequence
+
+import numpy as np
+import torch
+import trimesh
+from PIL import Image
+
+from usl.vis.visualize import palette
+from usl.geometry.cameras import opencv_to_opengl_camera, unproject
+from usl.model.outputs import ObjectPredictions
+
+AXES = ("gltf", "opencv")
+CAMERA_NODE = "camera"
+IMAGE_NODE = "input_image"
+
+
+def axes_matrix(axes: str) -> np.ndarray:
+    """3x3 taking OpenCV camera coordinates to the written coordinates."""
+    if axes not in AXES:
+        raise ValueError(f"axes must be one of {AXES}, got {axes!r}")
+    return opencv_to_opengl_camera()[:3, :3].numpy() if axes == "gltf" else np.eye(3)
+
+
+def object_names(pred: ObjectPredictions, categories: Sequence[str]) -> list[str]:
+    return [f"{n:02d}_{categories[int(l)].replace(' ', '_')}" for n, l in enumerate(pred.labels.tolist())]
+
+
+def object_meshes(pred: ObjectPredictions, categories: Sequence[str], axes: str) -> trimesh.Scene:
+    """One named, coloured node per object, its category and score in the node's ``extras``."""
+    flip = axes_matrix(axes)
+    faces = pred.faces.cpu().numpy()
+    scene = trimesh.Scene()
+    objects = zip(
+        object_names(pred, categories),
+        pred.verts.cpu().double().numpy(),
+        palette(len(pred)),
+        pred.labels.tolist(),
+        pred.scores.tolist(),
+        pred.z.tolist(),
+        pred.rho.tolist(),
+        pred.boxes.tolist(),
+    )
+    for name, verts, color, label, score, z, rho, box in objects:
+        mesh = trimesh.Trimesh(verts @ flip.T, faces, process=False)
+        mesh.visual.vertex_colors = np.array([*color, 255], dtype=np.uint8)
+        extras = {
+            "category": categories[int(label)],
+            "category_id": int(label),
+            "score": round(float(score), 6),
+            "z": float(z),
+            "rho": float(rho),
+            "box_xyxy": [round(float(v), 3) for v in box],
+        }
+        scene.add_geometry(mesh, node_name=name, geom_name=name, metadata=extras)
+    return scene
+
+
+def gltf_camera(K: np.ndarray, width: int, height: int) -> trimesh.scene.Camera:
+    """A perspective camera with K's vertical field of view and pixel aspect.
+
+    trimesh writes ``aspectRatio = fov[0] / fov[1]`` and reads ``fov = (aspectRatio * yfov, yfov)``,
+    so ``fov[0]`` is set to aspect * yfov for the file to hold glTF's ``aspectRatio``."""
+    fx, fy = float(K[0, 0]), float(K[1, 1])
+    yfov = math.degrees(2.0 * math.atan(0.5 * height / fy))
+    aspect = (width * fy) / (height * fx)
+    return trimesh.scene.Camera(name=CAMERA_NODE, fov=(aspect * yfov, yfov), resolution=(width, height), z_near=0.01)
+
+
+def image_plane(image: np.ndarray, K: np.ndarray, depth: float, axes: str) -> trimesh.Trimesh:
+    """The image on a quad at planar ``depth``, exactly covering the camera's view (full K)."""
+    height, width = image.shape[:2]
+    corners = torch.tensor([[0.0, 0.0], [width, 0.0], [width, height], [0.0, height]], dtype=torch.float64)
+    points = unproject(corners, torch.full((4,), float(depth), dtype=torch.float64), torch.from_numpy(K).double())
+    uv = np.array([[0.0, 1.0], [1.0, 1.0], [1.0, 0.0], [0.0, 0.0]])  # trimesh's uv origin is bottom-left
+    material = trimesh.visual.material.PBRMaterial(
+        baseColorTexture=Image.fromarray(image), doubleSided=True, metallicFactor=0.0, roughnessFactor=1.0
+    )
+    faces = np.array([[0, 2, 1], [0, 3, 2]])  # facing the camera (-z in OpenCV axes)
+    return trimesh.Trimesh(
+        points.numpy() @ axes_matrix(axes).T,
+        faces,
+        process=False,
+        visual=trimesh.visual.TextureVisuals(uv=uv, material=material),
+    )
+
+
+def prediction_scene(
+    pred: ObjectPredictions, categories: Sequence[str], image: np.ndarray, K: np.ndarray, axes: str = "gltf"
+) -> trimesh.Scene:
+    """Objects, the input camera and the image plane (behind the farthest object)."""
+    scene = object_meshes(pred, categories, axes)
+    height, width = image.shape[:2]
+    depth = 1.25 * float(pred.verts[..., 2].max()) if len(pred) else 1.0
+    scene.add_geometry(
+        image_plane(image, K, max(depth, 1e-3), axes),
+        node_name=IMAGE_NODE,
+        geom_name=IMAGE_NODE,
+        metadata={"depth_m": depth},
+    )
+    scene.camera = gltf_camera(K, width, height)
+    pose = np.eye(4)
+    pose[:3, :3] = axes_matrix(axes) @ opencv_to_opengl_camera()[:3, :3].numpy()  # glTF camera frame -> written frame
+    scene.camera_transform = pose
+    return scene
