@@ -5,9 +5,9 @@
 then scale the boxes back, clip them, drop empty ones and paste each mask at the original size. The
 weights file decides the network (:func:`detector_for_weights`); category ids are COCO's.
 
-Images of one size batch without extra padding, so a batch gives what one image at a time gives;
-images of mixed sizes are padded to the largest, as detectron2 batches them (anchors over the
-padding can then change the proposals a little).
+A batch runs one forward pass per resized size, so no image is padded beyond its own size and a
+batch gives exactly what one image at a time gives (padding to a larger image's size, as detectron2
+batches, puts anchors over the padding and changes the proposals).
 """
 
 from __future__ import annotations
@@ -138,16 +138,17 @@ class InstanceSegmenter:
 
     @torch.no_grad()
     def __call__(self, images: Sequence[np.ndarray]) -> list[Segmentation]:
-        if not images:
-            return []
+        """One forward pass per resized size among ``images``: no image is padded beyond its own size."""
         inputs = [self.preprocess(image) for image in images]
-        sizes = [tuple(x.shape[1:]) for x in inputs]
-        height, width = max(h for h, _ in sizes), max(w for _, w in sizes)
-        batch = inputs[0].new_zeros((len(inputs), 3, height, width))
+        groups: dict[tuple[int, int], list[int]] = {}
         for index, x in enumerate(inputs):
-            batch[index, :, : x.shape[1], : x.shape[2]] = x
-        detections = self.detector.detect(batch, sizes)
-        return [self._postprocess(d, image.shape[:2]) for d, image in zip(detections, images)]
+            groups.setdefault(tuple(x.shape[1:]), []).append(index)
+        results: list[Segmentation | None] = [None] * len(images)
+        for size, indices in groups.items():
+            detections = self.detector.detect(torch.stack([inputs[i] for i in indices]), [size] * len(indices))
+            for index, found in zip(indices, detections):
+                results[index] = self._postprocess(found, images[index].shape[:2])
+        return results
 
     def _postprocess(self, detections, original_size: tuple[int, int]) -> Segmentation:
         """detectron2's ``detector_postprocess``: boxes to the original pixels, masks pasted there."""
