@@ -1,10 +1,10 @@
 #!/usr/bin/env bash
 # One prepared check for a machine with a CUDA GPU (never part of CI), within 8 minutes:
 #   1. the CUDA tests            (tests that skip themselves without a GPU)
-#   2. bench_rasterizer.py       --device cuda
-#   3. bench_train.py            hypersim recipe at the paper's 768x1024, 2 images x 5 views per GPU,
+#   2. bench/rasterizer.py       --device cuda
+#   3. bench/train.py            hypersim recipe at the paper's 768x1024, 2 images x 5 views per GPU,
 #                                against the paper's 16 images per 1.1 s on 8 V100s (1.82 images/s per GPU)
-#   4. bench_predict.py          both recipes and modes at the paper's sizes, against 8 / 3 fps (V100)
+#   4. bench/predict.py          both recipes and modes at the paper's sizes, against 8 / 3 fps (V100)
 # and one summary table. Each step has its own time limit, so a hung step costs only its budget;
 # a failed step is reported and the others still run. Logs go to $USL_GPU_CHECK_LOGS (default a
 # temporary folder). Exit status: 0 if every step passed.
@@ -22,9 +22,9 @@ mkdir -p "$LOGS"
 if [[ "${1:-}" == "--cpu-smoke" ]]; then
   MODE=cpu-smoke
   TESTS=(-m pytest -q -n 0 -rs tests/model/test_cuda.py)
-  RASTER=(scripts/bench_rasterizer.py --device cpu --repeats 1 --threads 1)
-  TRAIN=(scripts/bench_train.py --config tiny --device cpu --iters 1 --warmup 0 --size 64 64 --objects 2 --threads 1)
-  PREDICT=(scripts/bench_predict.py --device cpu --config scene_shapes --size 96 128 --objects 2 --images 1 --warmup 0 --threads 1)
+  RASTER=(scripts/bench/rasterizer.py --device cpu --repeats 1 --threads 1)
+  TRAIN=(scripts/bench/train.py --config tiny --device cpu --iters 1 --warmup 0 --size 64 64 --objects 2 --threads 1)
+  PREDICT=(scripts/bench/predict.py --device cpu --config scene_shapes --size 96 128 --objects 2 --images 1 --warmup 0 --threads 1)
   LIMITS=(300 300 300 300)
 else
   MODE=cuda
@@ -34,9 +34,9 @@ else
   fi
   "$PYTHON" -c "import torch; p = torch.cuda.get_device_properties(0); print(f'gpu_check: {p.name}, {p.total_memory / 2**30:.0f} GiB, torch {torch.__version__}')"
   TESTS=(-m pytest -q -n 0 -rs tests/model/test_cuda.py)
-  RASTER=(scripts/bench_rasterizer.py --device cuda --repeats 3)
-  TRAIN=(scripts/bench_train.py --config hypersim --device cuda --iters 5 --warmup 2)
-  PREDICT=(scripts/bench_predict.py --device cuda --images 20 --warmup 2)
+  RASTER=(scripts/bench/rasterizer.py --device cuda --repeats 3)
+  TRAIN=(scripts/bench/train.py --config hypersim --device cuda --iters 5 --warmup 2)
+  PREDICT=(scripts/bench/predict.py --device cuda --images 20 --warmup 2)
   LIMITS=(120 60 150 120)  # seconds; 7.5 minutes in all
 fi
 

@@ -22,7 +22,7 @@ mkdir -p "$OUT"
 start=$(date +%s)
 
 echo "== 1/4 build Scene-Shapes ($DATA) and a held-out build with another seed ($HELDOUT)"
-source scripts/scene_shapes_builds.sh
+source scripts/lib/scene_shapes_builds.sh
 build_scene_shapes "$DATA" 0 60
 build_scene_shapes "$HELDOUT" 1 60
 
@@ -34,7 +34,7 @@ usl-records info "$DATA" --sheet "$OUT/contact_sheet.png"
 echo "== 3/4 train the $CONFIG recipe on CPU"
 # One process per core (DDP over gloo) on 2+ cores, each with half of the recipe's batch: the
 # same batches as one process, ~1.4x the iterations per second. USL_MAIN_PROCS=1 forces one.
-source scripts/train_procs.sh
+source scripts/lib/train_procs.sh
 PROCS=${USL_MAIN_PROCS:-$(( $(cores) >= 2 ? 2 : 1 ))}
 # the recipe's batch is global: train_with_procs splits it over the processes
 USL_TRAIN_BATCH=$(recipe_batch "$CONFIG")
@@ -57,5 +57,5 @@ echo "== 4/4 evaluate on the held-out build against the baselines"
 usl-eval "$HELDOUT" --split train --input-views every:8 --checkpoint "$RUN" \
   --rows random,fixed,model,layout_only,detections --out "$EVAL" --pictures 6
 
-python3 scripts/main_job_verdict.py "$EVAL/metrics.json"
+python3 scripts/lib/main_job_verdict.py "$EVAL/metrics.json"
 echo "main job done in $(( $(date +%s) - start )) s: report in $EVAL/table.md, pictures in $EVAL/pictures/"

@@ -1,21 +1,16 @@
-"""scripts/fit_free_meshes.py --score: the fitted meshes, scored by usl-eval itself on a pyrender-made
+"""scripts/experiments/fit_free_meshes.py --score: the fitted meshes, scored by usl-eval itself on a pyrender-made
 build, beat the fixed-depth sphere they start from in every view and in 3D, and the report says how
 they were fitted; a mirrored fit is refused rather than scored in a reflected camera frame."""
 
 from __future__ import annotations
 
 import json
-import sys
-from pathlib import Path
 
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "scripts"))
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "evaluation"))
-
-import fit_free_meshes  # noqa: E402
-from eval_helpers import build_dataset  # noqa: E402
-from usl.config import load_config  # noqa: E402
+import fit_free_meshes
+from tests.evaluation.eval_helpers import build_dataset
+from usl.config import load_config
 
 
 def test_fitted_meshes_beat_the_sphere_in_every_view(tmp_path):

@@ -1,18 +1,14 @@
-"""scripts/mask_head_iou.py: the true-owner and true-object-order composites, against the z-buffer
+"""scripts/experiments/mask_head_iou.py: the true-owner and true-object-order composites, against the z-buffer
 of the same meshes placed in that order (two spheres overlapping in the image, drawn with both
 depth orders), the count of rightly ordered pairs, and the owner oracle hiding a spill that no order hides."""
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
-
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "scripts"))
 
-import mask_head_iou  # noqa: E402
-from usl.geometry import ico_sphere  # noqa: E402
+import mask_head_iou
+from usl.geometry import ico_sphere
 
 K = torch.tensor([[60.0, 0.0, 32.0], [0.0, 60.0, 32.0], [0.0, 0.0, 1.0]])
 

@@ -1,19 +1,15 @@
-"""scripts/mesh_roughness.py's figures: normal consistency (tested in tests/losses) and the Laplacian's length against
-trimesh."""
+"""scripts/experiments/mesh_roughness.py's figures: normal consistency (tested in tests/losses) and the Laplacian's
+length against trimesh."""
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
 
 import numpy as np
 import torch
 import trimesh
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "scripts"))
-
-import mesh_roughness  # noqa: E402
-from usl.geometry import faces_on_each_edge, uniform_laplacian, unique_edges  # noqa: E402
+import mesh_roughness
+from usl.geometry import faces_on_each_edge, uniform_laplacian, unique_edges
 
 
 def test_roughness_is_normal_consistency_and_the_mean_distance_to_the_neighbours_centroid():

@@ -1,17 +1,13 @@
-"""scripts/placement_chamfer.py: the alignments it scores, against brute-force distances (scipy's cdist)."""
+"""scripts/experiments/placement_chamfer.py: the alignments it scores, against brute-force distances (scipy's cdist)."""
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
 
 import numpy as np
 import torch
 from scipy.spatial.distance import cdist
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "scripts"))
-
-import placement_chamfer  # noqa: E402
+import placement_chamfer
 
 
 def _chamfer(a: np.ndarray, b: np.ndarray) -> float:

@@ -1,4 +1,4 @@
-"""scripts/table1_plan.py and table1_summary.py: Table 1's rows, budget, and mean ± std over seeds.
+"""scripts/experiments/table1_plan.py and table1_summary.py: Table 1's rows, budget, and mean ± std over seeds.
 
 The fixtures are the files table1.sh leaves: usl-eval's ``metrics.json`` written by usl-eval's own
 writer (``write_report``), run folders with checkpoints written by the trainer's
@@ -8,21 +8,18 @@ writer (``write_report``), run folders with checkpoints written by the trainer's
 from __future__ import annotations
 
 import json
-import sys
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "scripts"))
-
-import table1_plan  # noqa: E402
-import table1_summary  # noqa: E402
-from usl.config import load_config  # noqa: E402
-from usl.engine.checkpoint import write_run_checkpoint  # noqa: E402
-from usl.evaluation.summary import METRICS, PredictorSummary  # noqa: E402
-from usl.evaluation.report import write_report  # noqa: E402
+import table1_plan
+import table1_summary
+from usl.config import CONFIG_DIR, load_config
+from usl.engine.checkpoint import write_run_checkpoint
+from usl.evaluation.report import write_report
+from usl.evaluation.summary import METRICS, PredictorSummary
 
 HEADER = {"dataset": "scene_shapes", "split": "train", "num_scenes": 8, "num_input_views": 8}
 SEEDS = {"usl2": [0, 1, 2], "usl5": [0, 1, 2], "usl5_vertalign": [4]}  # one row with a single seed
@@ -182,7 +179,7 @@ def test_plan_skips_rows_whose_key_is_missing_and_keeps_its_budget(tmp_path):
 def test_a_folder_is_refused_once_its_recipe_file_changes(tmp_path):
     """Same recipe name, same options, edited recipe: its runs must not land in the old table."""
     recipe = tmp_path / "mine.yaml"
-    tiny = Path(table1_plan.ROOT) / "usl" / "configs" / "tiny.yaml"
+    tiny = CONFIG_DIR / "tiny.yaml"
     recipe.write_text(f"_base_: {tiny}\nloss: {{render: {{blur_radius: 9.21e-3}}}}\n")
     out = tmp_path / "table"
     table1_plan.plan(str(recipe), 40, [0], 1, out)

@@ -25,7 +25,7 @@ class TrainStep:
     def __init__(self, cfg: Config, info: DistInfo):
         self.cfg, self.info = cfg, info
         # before the model exists, so its allocations follow the policy too; here, not in the
-        # Trainer, so scripts/bench_train.py times the step usl-train runs
+        # Trainer, so scripts/bench/train.py times the step usl-train runs
         if cfg.train.retain_freed_memory and info.device.type == "cpu":
             retain_freed_memory()
         self.model = USLModel(cfg.model, cfg.loss).to(info.device)

@@ -2,7 +2,7 @@
 
 * CPU, float32/float64: the greedy loop itself, compiled by numba over boxes sorted by score (and
   group), contiguous in memory. It is torchvision's algorithm without its indirect indexing, and
-  beats its CPU kernel (``scripts/bench_nms.py``); numba caches the compiled loop on disk.
+  beats its CPU kernel (``scripts/bench/nms.py``); numba caches the compiled loop on disk.
 * CUDA: ``torchvision.ops.nms`` where torchvision loads and agrees with the pure-torch path on a
   probe set (checked once per device type); otherwise the pure-torch path below.
 * Pure torch, on the boxes' device: greedy NMS as a graph problem, so nothing walks the boxes

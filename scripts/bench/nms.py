@@ -1,8 +1,8 @@
 """usl's NMS (the compiled CPU loop and the pure-torch graph method) against torchvision.ops,
 side by side in one run (process CPU time, 1 thread).
 
-    /work/venv-tv/bin/python scripts/bench_nms.py            # an env where torchvision imports
-    python scripts/bench_nms.py --device cuda --sizes 1000 20000
+    python scripts/bench/nms.py                              # in an env where torchvision imports
+    python scripts/bench/nms.py --device cuda --sizes 1000 20000
 
 Boxes look like detector output: clusters of jittered boxes around object-like boxes (what
 proposals and per-class detections are) plus scattered background boxes; ``batched`` puts them
@@ -16,16 +16,12 @@ from __future__ import annotations
 
 import argparse
 import statistics
-import sys
 import time
-from pathlib import Path
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from usl.model.ops import batched_nms, nms  # noqa: E402  (no compiled torch extension: imports beside any torchvision)
-from usl.model.ops.nms import _TORCHVISION, _pure_torch_batched_nms, _pure_torch_nms  # noqa: E402
+from usl.model.ops import batched_nms, nms  # no compiled torch extension: imports beside any torchvision
+from usl.model.ops.nms import _TORCHVISION, _pure_torch_batched_nms, _pure_torch_nms
 
 
 def detector_like_boxes(count: int, generator: torch.Generator, size: float = 1024.0):

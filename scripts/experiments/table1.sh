@@ -4,17 +4,17 @@
 # models, other scenes; its train split, every 8th view an input view), score the fixed- and
 # random-depth spheres once, and write a Markdown table of mean ± std over seeds.
 #
-#   bash scripts/table1.sh                  # every row, seeds 0,1,2, the tiny recipe's own budget
-#   bash scripts/table1.sh --dry-run        # print the budget (iterations, runs, estimated time) only
-#   bash scripts/table1.sh --quick          # smoke run: 10-scene builds, 10 iterations, 2 seeds (~3 min)
-#   bash scripts/table1.sh --seeds 0,1,2,3,4 --iters 600 --out runs/table1_600
+#   bash scripts/experiments/table1.sh                  # every row, seeds 0,1,2, the tiny recipe's own budget
+#   bash scripts/experiments/table1.sh --dry-run        # print the budget (iterations, runs, estimated time) only
+#   bash scripts/experiments/table1.sh --quick          # smoke run: 10-scene builds, 10 iterations, 2 seeds (~3 min)
+#   bash scripts/experiments/table1.sh --seeds 0,1,2,3,4 --iters 600 --out runs/table1_600
 #
 # Options: --seeds LIST (train.seed values; default 0,1,2, --quick 0,1), --iters N (per run;
 # default the recipe's optim.max_iter, and the recipe's schedule is scaled to another N),
 # --out DIR (default runs/table1, --quick runs/table1_quick), --data DIR (the builds; default
-# runs/experiments/data, the builds of scripts/recipe_experiment.sh, --quick OUT/data),
+# runs/experiments/data, the builds of scripts/experiments/recipe_experiment.sh, --quick OUT/data),
 # --jobs N (runs side by side, one thread each; default: the cores), --config RECIPE (default tiny).
-# Rows and their overrides: scripts/table1_plan.py. A row whose config key this checkout lacks is
+# Rows and their overrides: scripts/experiments/table1_plan.py. A row whose config key this checkout lacks is
 # reported as "skipped: key not available". The budget is printed before anything runs.
 #
 # Resumable: a run with its final checkpoint and its held-out metrics.json is not redone, a run
@@ -22,11 +22,11 @@
 # added later with the same options. Writes OUT/table1.md (and table1.json), OUT/runs/<row>/seed<k>/
 # {train,eval,train.log,eval.log}, OUT/baselines/eval and OUT/progress.log.
 set -euo pipefail
-cd "$(dirname "$0")/.."
+cd "$(dirname "$0")/../.."
 export PYOPENGL_PLATFORM=${PYOPENGL_PLATFORM:-egl}
 # this checkout's code (python -m, not the console scripts), whatever pip last installed
 export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}"
-source scripts/scene_shapes_builds.sh
+source scripts/lib/scene_shapes_builds.sh
 ARGS="$*" QUICK=0 DRY=0 SEEDS= ITERS= OUT= DATA= JOBS=$(cores) CONFIG=tiny
 # one thread per process: --jobs processes share the cores (oversubscribed threads slow every op)
 export OMP_NUM_THREADS=1 MKL_NUM_THREADS=1
@@ -64,7 +64,7 @@ start=$(date +%s)
 
 echo "== Table 1 at CPU scale -> $OUT"
 mkdir -p "$OUT"
-python3 scripts/table1_plan.py --config "$CONFIG" ${ITERS:+--iters "$ITERS"} --seeds "$SEEDS" --jobs "$JOBS" --out "$OUT" \
+python3 scripts/experiments/table1_plan.py --config "$CONFIG" ${ITERS:+--iters "$ITERS"} --seeds "$SEEDS" --jobs "$JOBS" --out "$OUT" \
   --data "train=$TRAIN ($SCENES scenes) heldout=$HELDOUT ($SCENES scenes, split train, input views $EVAL_VIEWS)" \
   --eval-views $((SCENES * 8 / 10)) \
   ${EXTRA[@]+"${EXTRA[@]}"} | tee "$OUT/plan.txt"
@@ -73,21 +73,21 @@ python3 scripts/table1_plan.py --config "$CONFIG" ${ITERS:+--iters "$ITERS"} --s
 echo "== builds: $TRAIN, $HELDOUT"
 experiment_builds "$DATA" "$SCENES" "$SCENES" --quiet
 
-SESSION=$OUT/.session  # this invocation's finished runs (their durations) and failures
-rm -rf "$SESSION" && mkdir -p "$SESSION" "$OUT/runs"
+THIS_RUN=$OUT/.this_run  # this invocation's finished runs (their durations) and failures
+rm -rf "$THIS_RUN" && mkdir -p "$THIS_RUN" "$OUT/runs"
 mapfile -t PLAN < "$OUT/plan.tsv"
 total=$(( $(cut -f3 "$OUT/plan.tsv" | grep -cx train || true) * ${#SEED_LIST[@]} ))
 
 progress() {  # one line per finished run: runs done, time so far, estimate of what is left
   local done timed left=""
   done=$(find "$OUT/runs" -path '*/eval/metrics.json' | wc -l)
-  timed=$(cat "$SESSION"/*.s 2>/dev/null | awk '{ s += $1; n++ } END { if (n) printf "%d", s / n }' || true)
+  timed=$(cat "$THIS_RUN"/*.s 2>/dev/null | awk '{ s += $1; n++ } END { if (n) printf "%d", s / n }' || true)
   if [[ -n $timed ]] && ((done < total)); then left=", ~$(( (total - done) * timed / JOBS / 60 + 1 )) min left"; fi
   echo "[$done/$total runs, $(( ($(date +%s) - start) / 60 )) min$left] $*" | tee -a "$OUT/progress.log"
 }
 
 fail() {  # RUN_ID MESSAGE LOG
-  touch "$SESSION/$1.failed"
+  touch "$THIS_RUN/$1.failed"
   progress "FAILED $2 (see $3):"
   tail -n 3 "$3" | sed 's/^/    /'
   return 1
@@ -110,7 +110,7 @@ run_one() {  # SLUG LABEL SEED OVERRIDES...: train (or resume), then score on th
   began=$(date +%s)
   for o in "$@"; do [[ $o == optim.max_iter=* ]] && iters=${o#*=}; done
   if [[ -f $run/eval/metrics.json ]]; then
-    progress "$label, seed $seed: done before: $(python3 scripts/table1_summary.py --run "$run/eval")"
+    progress "$label, seed $seed: done before: $(python3 scripts/experiments/table1_summary.py --run "$run/eval")"
     return 0
   fi
   mkdir -p "$run"
@@ -134,8 +134,8 @@ run_one() {  # SLUG LABEL SEED OVERRIDES...: train (or resume), then score on th
     --device cpu --out "$run/eval.partial" --quiet "${EVAL_OPTS[@]}" > "$run/eval.log" 2>&1 \
     || fail "${slug}_$seed" "$label, seed $seed: usl-eval" "$run/eval.log" || return 1
   mv "$run/eval.partial" "$run/eval"
-  echo $(( $(date +%s) - began )) > "$SESSION/${slug}_$seed.s"
-  progress "$label, seed $seed: $what; scored in $(( $(date +%s) - scoring )) s: $(python3 scripts/table1_summary.py --run "$run/eval")"
+  echo $(( $(date +%s) - began )) > "$THIS_RUN/${slug}_$seed.s"
+  progress "$label, seed $seed: $what; scored in $(( $(date +%s) - scoring )) s: $(python3 scripts/experiments/table1_summary.py --run "$run/eval")"
 }
 
 launch() {  # run "$@" in the background once fewer than JOBS runs are going
@@ -160,11 +160,11 @@ done
 wait
 
 echo "== table: $OUT/table1.md"
-python3 scripts/table1_summary.py "$OUT"
+python3 scripts/experiments/table1_summary.py "$OUT"
 {
   echo
-  echo "Command: \`bash scripts/table1.sh${ARGS:+ $ARGS}\`; this invocation took $(( ($(date +%s) - start) / 60 )) min wall."
+  echo "Command: \`bash scripts/experiments/table1.sh${ARGS:+ $ARGS}\`; this invocation took $(( ($(date +%s) - start) / 60 )) min wall."
   sed 's/^/    /' "$OUT/plan.txt"
 } >> "$OUT/table1.md"
-failed=$(find "$SESSION" -name '*.failed' | wc -l)
+failed=$(find "$THIS_RUN" -name '*.failed' | wc -l)
 if ((failed)); then echo "table1.sh: $failed run(s) failed; the table holds the others (re-run to retry)" >&2; exit 1; fi

@@ -12,7 +12,7 @@ Target: >= 30 frames/s/core for decoding + tracking at 640x480.
 With ``--quality SCAN_DIR --label-map TSV`` it instead measures the IoU tracker against ScanNet's own
 instance ids on a real scan (purity, id switches) at the given ``--stride``.
 
-    python scripts/bench_scannet.py [--frames 400] [--work /tmp/bench_scannet]
+    python scripts/bench/scannet.py [--frames 400] [--work /tmp/bench_scannet]
 """
 
 from __future__ import annotations
@@ -34,8 +34,6 @@ from pathlib import Path  # noqa: E402
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from data_specs import load_dataset_spec  # noqa: E402
 from pipelines.common import BuildOptions, ShardPlan, run_build  # noqa: E402

@@ -9,39 +9,51 @@ Prints, measured side by side in one run:
 Frames come from the test fixture writer (tests/pipelines/hypersim/hypersim_fixture.py) with the
 release's dtypes and gzip level 9; scenes beyond the first hard-link its image files.
 
-    python scripts/bench_hypersim.py [--frames 6] [--workdir DIR]
+    python scripts/bench/hypersim.py [--frames 6] [--workdir DIR]
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import os
 import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
+from types import ModuleType
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
-sys.path.insert(0, str(REPO / "tests" / "pipelines" / "hypersim"))
-
-from hypersim_fixture import make_scene, split_rows, write_camera_csv, write_scene, write_split_csv  # noqa: E402
-
-from pipelines.hypersim.convert import (  # noqa: E402
+from pipelines.hypersim.convert import (
     ConvertOptions,
     TrajectoryConverter,
     TrajectoryUnit,
     build_trajectory,
     single_threaded_worker,
 )
-from pipelines.hypersim.frames import read_hdf5_frame  # noqa: E402
-from pipelines.hypersim.instances import category_votes, instance_entries  # noqa: E402
-from pipelines.hypersim.metadata import read_camera_csv  # noqa: E402
-from pipelines.hypersim.tonemap import apply_tonemap, tonemap_scale  # noqa: E402
-from usl.records import encode_depth, encode_image  # noqa: E402
+from pipelines.hypersim.frames import read_hdf5_frame
+from pipelines.hypersim.instances import category_votes, instance_entries
+from pipelines.hypersim.metadata import read_camera_csv
+from pipelines.hypersim.tonemap import apply_tonemap, tonemap_scale
+from usl.records import encode_depth, encode_image
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def _load_fixture_writer() -> ModuleType:
+    """The Hypersim test fixture's writer, loaded by path: a test helper, not part of the installed packages."""
+    spec = importlib.util.spec_from_file_location(
+        "hypersim_fixture", REPO / "tests/pipelines/hypersim/hypersim_fixture.py"
+    )
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # its dataclasses look their module up while being defined
+    spec.loader.exec_module(module)
+    return module
+
+
+fixture = _load_fixture_writer()
 
 WIDTH, HEIGHT = 1024, 768
 MAX_SCENES = 6
@@ -50,9 +62,9 @@ MAX_SCENES = 6
 def make_inputs(root: Path, frames: int) -> tuple[Path, Path, Path]:
     """Scene ai_001_001 rendered for real; ai_001_002.. share its frames through hard links."""
     scenes = root / "scenes"
-    template = make_scene("ai_001_001", WIDTH, HEIGHT, keyframes=frames)
-    source = write_scene(scenes, template, {"cam_00": list(range(frames))})
-    rows = split_rows("ai_001_001", "cam_00", range(frames), "train")
+    template = fixture.make_scene("ai_001_001", WIDTH, HEIGHT, keyframes=frames)
+    source = fixture.write_scene(scenes, template, {"cam_00": list(range(frames))})
+    rows = fixture.split_rows("ai_001_001", "cam_00", range(frames), "train")
     names = ["ai_001_001"]
     for k in range(2, MAX_SCENES + 1):
         name = f"ai_001_{k:03d}"
@@ -63,10 +75,10 @@ def make_inputs(root: Path, frames: int) -> tuple[Path, Path, Path]:
                 target.mkdir(parents=True, exist_ok=True)
             else:
                 os.link(path, target)
-        rows += split_rows(name, "cam_00", range(frames), "train")
-    split_csv = write_split_csv(root / "split.csv", rows)
-    clones = [make_scene(n, WIDTH, HEIGHT, keyframes=frames) for n in names]
-    return scenes, split_csv, write_camera_csv(root / "cameras.csv", clones)
+        rows += fixture.split_rows(name, "cam_00", range(frames), "train")
+    split_csv = fixture.write_split_csv(root / "split.csv", rows)
+    clones = [fixture.make_scene(n, WIDTH, HEIGHT, keyframes=frames) for n in names]
+    return scenes, split_csv, fixture.write_camera_csv(root / "cameras.csv", clones)
 
 
 def unit_for(scenes: Path, camera_csv: Path, frames: int, options: ConvertOptions) -> TrajectoryUnit:

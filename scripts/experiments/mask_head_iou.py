@@ -21,7 +21,8 @@ and in two orders that use the truth:
   gap to the true object order bounds what the silhouettes' spill costs when drawn together (it
   also holds what the per-object order gets wrong).
 
-    python3 scripts/mask_head_iou.py HELDOUT_BUILD RUN_OR_CHECKPOINT [--split train] [--input-views every:8]
+    python3 scripts/experiments/mask_head_iou.py HELDOUT_BUILD RUN_OR_CHECKPOINT
+        [--split train] [--input-views every:8]
 """
 
 from __future__ import annotations

@@ -1,9 +1,9 @@
 """Training-step benchmark: seconds per iteration, images/s and peak memory of ``usl-train``'s step.
 
-    python scripts/bench_train.py --config tiny --device cpu                 # CPU, tiny recipe
-    python scripts/bench_train.py --config hypersim --device cuda            # paper size: 768x1024,
+    python scripts/bench/train.py --config tiny --device cpu                 # CPU, tiny recipe
+    python scripts/bench/train.py --config hypersim --device cuda            # paper size: 768x1024,
                                                                              # 2 images x 5 views per GPU
-    python scripts/bench_train.py --config tiny --data /data/scene_shapes_small   # real records
+    python scripts/bench/train.py --config tiny --data /data/scene_shapes_small   # real records
 
 Without ``--data`` the batches are synthetic but shaped like the dataset of the recipe: images
 of ``--size``, ``--objects`` objects per input view with elliptic masks, and ``num_views`` views
@@ -18,24 +18,19 @@ import argparse
 import math
 import resource
 import statistics
-import sys
 import time
-from pathlib import Path
 
 import torch
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-
-from data_specs import load_dataset_spec  # noqa: E402
-from usl.model.config import LayoutRange  # noqa: E402
-from usl.config import load_config  # noqa: E402
-from usl.data import CategoryIndex, FrameData, MultiViewDataset, MultiViewSample, SampleKey, TargetView  # noqa: E402
-from usl.engine.distributed import DistInfo  # noqa: E402
-from usl.engine.train import fill_dataset_fields, seed_everything  # noqa: E402
-from usl.engine.train_step import TrainStep  # noqa: E402
-from usl.geometry.cameras import intrinsics_from_fov  # noqa: E402
-from usl.records import RecordsDataset  # noqa: E402
+from data_specs import load_dataset_spec
+from usl.config import load_config
+from usl.data import CategoryIndex, FrameData, MultiViewDataset, MultiViewSample, SampleKey, TargetView
+from usl.engine.distributed import DistInfo
+from usl.engine.train import fill_dataset_fields, seed_everything
+from usl.engine.train_step import TrainStep
+from usl.geometry.cameras import intrinsics_from_fov
+from usl.model.config import LayoutRange
+from usl.records import RecordsDataset
 
 RECIPE_DATA = {
     "tiny": "scene_shapes",

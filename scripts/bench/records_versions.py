@@ -2,7 +2,7 @@
 same scenes from a v1 folder read as usl 0.1 did (no upgrade), the v1 folder upgraded to v2 rows
 on read, and a v2 folder; then whole samples decoded to tensors from the v2 folder.
 
-    python scripts/bench_records_versions.py V1_ROOT V2_ROOT   # e.g. a v1 build and its migrated copy
+    python scripts/bench/records_versions.py V1_ROOT V2_ROOT   # e.g. a v1 build and its migrated copy
 """
 
 import random

@@ -7,7 +7,7 @@ against the true masks, as logged in training) bound what a network trained with
 learn, and separate loss problems (a fit that stalls here) from network ones (a fit that works
 here but not in training). Run it side by side for the settings to compare:
 
-    python scripts/fit_free_meshes.py runs/data --samples 8 --steps 300 loss.render.sigma=4e-3
+    python scripts/experiments/fit_free_meshes.py runs/data --samples 8 --steps 300 loss.render.sigma=4e-3
 
 With ``--score OUT`` the fitted meshes are scored as usl-eval scores a model instead (Chamfer, F1,
 Mask IoU input and views, per true category, pictures), next to the fixed-depth sphere: an oracle
@@ -15,7 +15,7 @@ row fitted to each input view's own scene, e.g. to every view of a held-out Scen
 (``data.num_views=8``), which bounds what the mesh (``--ico-level``) can show whatever network
 predicts it:
 
-    python scripts/fit_free_meshes.py HELDOUT --score OUT --input-views every:8 --max-scenes 12 \
+    python scripts/experiments/fit_free_meshes.py HELDOUT --score OUT --input-views every:8 --max-scenes 12 \
         --steps 200 --ico-level 3 data.num_views=8
 """
 

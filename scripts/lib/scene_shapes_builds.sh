@@ -1,7 +1,7 @@
 # Sourced by the main job and the experiment scripts (main_job.sh, recipe_experiment.sh, table1.sh):
 # the Scene-Shapes builds they train and score on, so every one of them sees the same data.
 #
-#   source scripts/scene_shapes_builds.sh
+#   source scripts/lib/scene_shapes_builds.sh
 #   build_scene_shapes OUT SEED SCENES [builder options]      # SCENES scenes and as many shape models
 #   experiment_builds DATA TRAIN_SCENES HELDOUT_SCENES [builder options, e.g. --quiet]
 #

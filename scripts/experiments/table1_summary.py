@@ -1,7 +1,7 @@
-"""Table 1 at CPU scale: mean ± std over seeds of each row's held-out metrics (scripts/table1.sh).
+"""Table 1 at CPU scale: mean ± std over seeds of each row's held-out metrics (scripts/experiments/table1.sh).
 
-    python3 scripts/table1_summary.py runs/table1            # writes table1.md and table1.json there
-    python3 scripts/table1_summary.py --run runs/table1/runs/usl5/seed0/eval   # one run's line
+    python3 scripts/experiments/table1_summary.py runs/table1            # writes table1.md and table1.json there
+    python3 scripts/experiments/table1_summary.py --run runs/table1/runs/usl5/seed0/eval   # one run's line
 
 Reads the output folder table1.sh lays out: ``plan.tsv`` (the trained rows and their status),
 ``baselines/eval/metrics.json`` (usl-eval's fixed and random rows, scored once) and
@@ -21,12 +21,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "scripts"))
-
-from table1_plan import ROWS, Row  # noqa: E402
-from usl.evaluation.report import COLUMNS, Column  # noqa: E402
+from table1_plan import ROWS, Row  # a sibling script: python puts this folder on sys.path
+from usl.evaluation.report import COLUMNS, Column
 
 TABLE_COLUMNS: list[Column] = COLUMNS["scene_shapes"]  # usl-eval's Table 1 columns: titles, scales, decimals
 _SEED = re.compile(r"^seed(\d+)$")
@@ -97,7 +93,7 @@ def read_plan(out: Path) -> dict[str, str]:
     """slug -> status of the trained rows, from ``plan.tsv``."""
     plan = out / "plan.tsv"
     if not plan.is_file():
-        raise ValueError(f"{plan}: missing (scripts/table1.sh writes it before training)")
+        raise ValueError(f"{plan}: missing (scripts/experiments/table1.sh writes it before training)")
     return {line.split("\t")[0]: line.split("\t")[2] for line in plan.read_text().splitlines() if line.strip()}
 
 
@@ -203,7 +199,7 @@ def run_line(eval_dir: Path) -> str:
 
 def main(argv: Sequence[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("out", nargs="?", help="the table's output folder (scripts/table1.sh --out)")
+    p.add_argument("out", nargs="?", help="the table's output folder (scripts/experiments/table1.sh --out)")
     p.add_argument("--run", help="print one run's eval folder as a line instead")
     args = p.parse_args(argv)
     try:

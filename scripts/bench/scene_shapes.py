@@ -6,7 +6,7 @@ Two per-core figures are printed: wall-clock frames/s divided by the workers, an
 CPU-second of the build (its own and its workers' user+system time), which stays meaningful on a
 machine that other jobs share.
 
-    python scripts/bench_scene_shapes.py [--scenes 8] [--resolution 512] [--workers 1 2]
+    python scripts/bench/scene_shapes.py [--scenes 8] [--resolution 512] [--workers 1 2]
 """
 
 from __future__ import annotations

@@ -1,8 +1,8 @@
 """Inference benchmark: images/s and peak memory of ``model.predict``, beside the paper's figures.
 
-    python scripts/bench_predict.py                          # CPU: both recipes, both modes, 2 images
-    python scripts/bench_predict.py --device cuda --images 50
-    python scripts/bench_predict.py --config hypersim --size 192 256 --images 1   # a quick smoke run
+    python scripts/bench/predict.py                          # CPU: both recipes, both modes, 2 images
+    python scripts/bench/predict.py --device cuda --images 50
+    python scripts/bench/predict.py --config hypersim --size 192 256 --images 1   # a quick smoke run
 
 Recipes at the paper's image sizes (Scene-Shapes 512x512, Hypersim 768x1024) with synthetic
 frames (random image, ``--objects`` true boxes; the cost of a forward pass does not depend on
@@ -21,7 +21,7 @@ import time
 
 import torch
 
-from bench_train import DEFAULT_OBJECTS, DEFAULT_SIZE, load_bench_config, synthetic_sample
+from train import DEFAULT_OBJECTS, DEFAULT_SIZE, load_bench_config, synthetic_sample
 from usl.model.usl_model import MODES, USLModel
 
 PAPER_FPS = {"scene_shapes": 8.0, "hypersim": 3.0}  # V100, paper Sec. 4

@@ -10,7 +10,8 @@ one), next to the ico-sphere's own:
   raises as well as spikes.
 The pictures show the same; this puts numbers on it and says which stage to blame.
 
-    python3 scripts/mesh_roughness.py HELDOUT_BUILD RUN_OR_CHECKPOINT [--split train] [--input-views every:8]
+    python3 scripts/experiments/mesh_roughness.py HELDOUT_BUILD RUN_OR_CHECKPOINT
+        [--split train] [--input-views every:8]
 """
 
 from __future__ import annotations

@@ -6,7 +6,7 @@ core) and with 2 DataLoader workers side by side, so the per-core figure and sca
 Then what verifying readers cost, in CPU time side by side: the same samples read with and without
 Parquet page checksum verification (always on in usl's readers), and ``data.verify=sha256``.
 
-    python scripts/bench_records.py --root data/scene_shapes_small --split train
+    python scripts/bench/records.py --root data/scene_shapes_small --split train
 """
 
 from __future__ import annotations

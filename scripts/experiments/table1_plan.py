@@ -1,8 +1,8 @@
 """Table 1 at CPU scale: its rows, each run's training budget, and the time it will take.
 
-    python3 scripts/table1_plan.py --config tiny --iters 1100 --seeds 0,1,2 --jobs 2 --out runs/table1
+    python3 scripts/experiments/table1_plan.py --config tiny --iters 1100 --seeds 0,1,2 --jobs 2 --out runs/table1
 
-Writes ``OUT/plan.tsv`` for ``scripts/table1.sh``, one line per trained row (slug, label, status,
+Writes ``OUT/plan.tsv`` for ``scripts/experiments/table1.sh``, one line per trained row (slug, label, status,
 the usl-train overrides of its runs), and prints the budget: iterations per run, runs, and the
 estimated time. ``OUT/budget.txt`` records the budget; an output folder holding runs of another
 budget is refused (more seeds are fine). A row whose config key this checkout's usl-train does not know is planned as
@@ -22,10 +22,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-
-from usl.config import Config, ConfigError, dump_config, load_config  # noqa: E402
+from usl.config import Config, ConfigError, dump_config, load_config
 
 
 @dataclass(frozen=True)
@@ -53,7 +50,7 @@ ROWS = (
 TRAINED = tuple(r for r in ROWS if r.trained)
 
 # CPU seconds (one thread) per iteration, usl-train's start-up and final checkpoint included,
-# measured on this project's 2-core machine with two runs side by side: `bash scripts/table1.sh
+# measured on this project's 2-core machine with two runs side by side: `bash scripts/experiments/table1.sh
 # --iters 600 --seeds 0,1` with tiny's wider blur radius (runs/table1_600/progress.log,
 # 2026-12-01): usl2 438-488 s CPU for 600 iterations, usl5 880 s, usl5_vertalign 764-775 s,
 # usl5_no_dist 679-724 s, meshrcnn_3d 784-797 s. Runs of the output folder replace them (their
@@ -178,7 +175,7 @@ def plan(
         f"budget: {len(trained)} trained rows x {len(seeds)} seeds ({', '.join(map(str, seeds))}) = {runs} runs of "
         f"{iters} iterations ({runs * iters:,} in all), recipe {config}, {jobs} at a time with 1 thread each",
         f"  overrides of every run: {' '.join(budget)}",
-        f"  seconds per iteration: {', '.join(rates) or '-'} (measured, see scripts/table1_plan.py), "
+        f"  seconds per iteration: {', '.join(rates) or '-'} (measured, see scripts/experiments/table1_plan.py), "
         f"plus ~{per_run:.0f} s per run for scoring {eval_views} held-out input views",
         f"  estimated time: {duration(cost / max(jobs, 1))} on {jobs} idle cores, not counting the builds and runs already done",
     ]

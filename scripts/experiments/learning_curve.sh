@@ -3,13 +3,13 @@
 # named) on a build the model never saw, and prints one Markdown row per checkpoint. This is how
 # "what it takes" is measured: train once with train.keep_checkpoints=0, then read the curve.
 #
-#   bash scripts/learning_curve.sh RUN HELDOUT [ITER ...]
-#   bash scripts/learning_curve.sh runs/f2/long4000 runs/experiments/data/heldout_seed1 1000 2000 4000
+#   bash scripts/experiments/learning_curve.sh RUN HELDOUT [ITER ...]
+#   bash scripts/experiments/learning_curve.sh runs/experiments/long/train runs/experiments/data/heldout_seed1 1000 2000 4000
 #
 # Environment: USL_CURVE_VIEWS (input views per held-out scene, default every:8, the main job's).
 # Each checkpoint's report goes to RUN/curve/ITER/; a checkpoint already scored is not redone.
 set -euo pipefail
-cd "$(dirname "$0")/.."
+cd "$(dirname "$0")/../.."
 export PYOPENGL_PLATFORM=${PYOPENGL_PLATFORM:-egl}
 export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}"
 RUN=${1:?usage: learning_curve.sh RUN HELDOUT [ITER ...]}

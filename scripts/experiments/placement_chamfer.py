@@ -7,7 +7,8 @@ after moving it along the camera's z axis only (shape and image-plane placement,
 error removed). A large drop from the first to the second says the layout, not the shape head,
 holds the Chamfer back.
 
-    python3 scripts/placement_chamfer.py HELDOUT_BUILD RUN_OR_CHECKPOINT [--split train] [--input-views every:8]
+    python3 scripts/experiments/placement_chamfer.py HELDOUT_BUILD RUN_OR_CHECKPOINT
+        [--split train] [--input-views every:8]
 """
 
 from __future__ import annotations

@@ -8,7 +8,7 @@
    masks, sparse soft rasterizer, BCE backward), reported as object-views per second; the
    rasterizer alone; and the z-buffer rasterizer producing the 5 views' true masks.
 
-Usage: python scripts/bench_rasterizer.py [--device cuda] [--repeats 5] [--threads N]
+Usage: python scripts/bench/rasterizer.py [--device cuda] [--repeats 5] [--threads N]
 (--threads 1 gives steadier CPU numbers on a shared machine.)
 """
 

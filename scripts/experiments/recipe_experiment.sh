@@ -1,19 +1,19 @@
 #!/usr/bin/env bash
 # One learning-quality experiment: train a recipe on the main job's Scene-Shapes build and score it
 # on a build with another --seed (shape models and scenes the model never saw), next to the sphere
-# baselines. The experiments behind the `tiny` recipe (issue F) are runs of this script.
+# baselines. The experiments behind the `tiny` recipe (docs/experiments/) are runs of this script.
 #
-#   bash scripts/recipe_experiment.sh NAME [key=value ...]      # overrides go to usl-train
-#   USL_EXP_CONFIG=scene_shapes bash scripts/recipe_experiment.sh r50 optim.max_iter=2000
+#   bash scripts/experiments/recipe_experiment.sh NAME [key=value ...]      # overrides go to usl-train
+#   USL_EXP_CONFIG=scene_shapes bash scripts/experiments/recipe_experiment.sh r50 optim.max_iter=2000
 #
 # Environment: USL_EXP_DIR (default runs/experiments), USL_EXP_CONFIG (default tiny),
 # USL_EXP_TRAIN_SCENES (scenes and models of the training build, default 60 as the main job),
 # USL_EXP_EVAL_VIEWS (input views scored per held-out scene, default every:4, i.e. 96 views),
 # USL_EXP_PROCS (training processes, default 1; 2 trains like the main job: DDP, 2 images each).
-# The main job's protocol: USL_EXP_PROCS=2 USL_EXP_EVAL_VIEWS=every:8 bash scripts/recipe_experiment.sh ...
+# The main job's protocol: USL_EXP_PROCS=2 USL_EXP_EVAL_VIEWS=every:8 bash scripts/experiments/recipe_experiment.sh ...
 # Writes $USL_EXP_DIR/NAME/{train,eval}; prints the held-out table and the training CPU time.
 set -euo pipefail
-cd "$(dirname "$0")/.."
+cd "$(dirname "$0")/../.."
 export PYOPENGL_PLATFORM=${PYOPENGL_PLATFORM:-egl}
 # this checkout's code (python -m, not the console scripts), whatever pip last installed
 export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}"
@@ -24,18 +24,18 @@ RUN=$ROOT/$NAME
 
 # a training build like the main job's (seed 0; USL_EXP_TRAIN_SCENES scenes and as many models),
 # and the main job's held-out build (seed 1, 60 scenes): other shape models, other scenes
-source scripts/scene_shapes_builds.sh
+source scripts/lib/scene_shapes_builds.sh
 experiment_builds "$DATA" "${USL_EXP_TRAIN_SCENES:-60}" 60 --quiet
 
 rm -rf "$RUN" && mkdir -p "$RUN"
 CONFIG=${USL_EXP_CONFIG:-tiny}
 # the batch of the recipe with the overrides (train.batch_size=... included), split over the processes by train_with_procs
-source scripts/train_procs.sh
+source scripts/lib/train_procs.sh
 USL_TRAIN_BATCH=$(recipe_batch "$CONFIG" "$@")
 export USL_TRAIN_BATCH
 # CPU time is the figure to compare on a shared machine; the progress bar goes to train.log
 /usr/bin/time -o "$RUN/train_time.txt" -f "training: %e s wall, %U s user CPU" \
-  bash -c 'source scripts/train_procs.sh && train_with_procs "$@"' train "${USL_EXP_PROCS:-1}" \
+  bash -c 'source scripts/lib/train_procs.sh && train_with_procs "$@"' train "${USL_EXP_PROCS:-1}" \
   --config "$CONFIG" --out "$RUN/train" data.root="$TRAIN" "$@" \
   > "$RUN/train.log" 2>&1 || { tail -5 "$RUN/train.log"; exit 1; }
 cat "$RUN/train_time.txt"
