@@ -9,15 +9,14 @@ import numpy as np
 import pycocotools.mask as mask_util
 
 from data_specs import coco_category_ids
-from tests.model.detectron2_fixtures import MASK_RCNN, write_random_checkpoint, write_test_images
+from tests.model.detectron2_fixtures import MASK_RCNN, write_test_images
 from tests.model.test_segmenter_oracle import ORACLE
 from usl.cli.segment import main
 
 
-def test_usl_segment_writes_what_detectron2_predicts(tmp_path, capsys):
+def test_usl_segment_writes_what_detectron2_predicts(tmp_path, detectron2_weights):
     run = next(r for r in ORACLE["runs"] if r["model"] == MASK_RCNN)
-    weights = tmp_path / "model_final_f10217.pkl"
-    write_random_checkpoint(weights, MASK_RCNN, ORACLE["seed"])
+    weights = detectron2_weights[MASK_RCNN][0]
     image = next(p for p in write_test_images(tmp_path) if p.name == "scannet.png")
     twin = tmp_path / "twin.png"
     shutil.copy(image, twin)

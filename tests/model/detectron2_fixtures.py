@@ -23,6 +23,7 @@ import numpy as np
 
 FIXTURES = Path(__file__).parent / "fixtures"
 CHECKPOINT_KEYS = json.loads((FIXTURES / "detectron2_checkpoint_keys.json").read_text())
+ORACLE_SEED = 0  # the seed of the weights the recorded oracle ran
 POINTREND = "pointrend_rcnn_R_50_FPN_3x_coco"
 MASK_RCNN = "mask_rcnn_R_50_FPN_3x"
 
@@ -64,20 +65,25 @@ def _values(key: str, shape: tuple[int, ...], rng: np.random.Generator) -> np.nd
     return (gain / np.sqrt(fan_in) * rng.standard_normal(shape, dtype=np.float32)).astype(np.float32)
 
 
-def random_weights(model: str, seed: int) -> dict[str, np.ndarray]:
+def random_weights(model: str, seed: int, background_bias: float = BACKGROUND_BIAS) -> dict[str, np.ndarray]:
     rng = np.random.default_rng(seed)
     weights = {key: _values(key, tuple(shape), rng) for key, shape in CHECKPOINT_KEYS[model].items()}
     # The box head's ReLU features share a large positive mean: zero-mean rows stop one class from
     # winning everywhere, and a background bias leaves only some proposals above the threshold.
     for layer in ("box_head.fc1", "box_head.fc2", "box_predictor.cls_score"):
         weights[f"roi_heads.{layer}.weight"] -= weights[f"roi_heads.{layer}.weight"].mean(axis=1, keepdims=True)
-    weights["roi_heads.box_predictor.cls_score.bias"][-1] = BACKGROUND_BIAS
+    weights["roi_heads.box_predictor.cls_score.bias"][-1] = background_bias
     return weights
 
 
-def write_random_checkpoint(path: Path, model: str, seed: int) -> dict[str, np.ndarray]:
-    """A ``model_final_*.pkl`` look-alike: ``{"model": {key: array}, "__author__": ...}``."""
-    weights = random_weights(model, seed)
+def write_random_checkpoint(
+    path: Path, model: str, seed: int, background_bias: float = BACKGROUND_BIAS
+) -> dict[str, np.ndarray]:
+    """A ``model_final_*.pkl`` look-alike: ``{"model": {key: array}, "__author__": ...}``.
+
+    ``background_bias``: lower it for more detections (the default suits the colourful test images).
+    """
+    weights = random_weights(model, seed, background_bias)
     with open(path, "wb") as stream:
         pickle.dump({"model": weights, "__author__": "random weights for tests"}, stream)
     return weights

@@ -127,7 +127,11 @@ def test_subdivision_refines_only_the_most_uncertain_cells():
     # one image at a time gives the same masks (no mixing across images in the batch)
     with torch.no_grad():
         alone = head.predict({k: v[1:] for k, v in features.items()}, boxes[1:], classes[1:])
+        empty = head.predict(features, [boxes[0], torch.zeros((0, 4))], classes[:1])
+        nothing = head.predict(features, [torch.zeros((0, 4)), torch.zeros((0, 4))], classes[:0])
     torch.testing.assert_close(alone, result[1:], atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(empty, result[:1], atol=1e-5, rtol=1e-5)  # an image without detections
+    assert nothing.shape == (0, 56, 56)
 
 
 def test_point_rend_trains_both_heads_and_predicts_full_size_masks():

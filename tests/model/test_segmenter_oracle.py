@@ -21,14 +21,7 @@ import pycocotools.mask as mask_util
 import pytest
 import torch
 
-from tests.model.detectron2_fixtures import (
-    FIXTURES,
-    MASK_RCNN,
-    POINTREND,
-    checksum,
-    write_random_checkpoint,
-    write_test_images,
-)
+from tests.model.detectron2_fixtures import FIXTURES, ORACLE_SEED, write_test_images
 from data_specs import coco_category_ids
 from usl.model.detector.mask_head import paste_masks_in_image
 from usl.model.ops import box_iou, clip_boxes, nonempty_boxes
@@ -50,16 +43,13 @@ def images(tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
-def weights(tmp_path_factory):
-    folder = tmp_path_factory.mktemp("weights")
-    paths = {}
-    for model in (POINTREND, MASK_RCNN):
-        path = folder / f"{model}.pkl"
-        assert checksum(write_random_checkpoint(path, model, ORACLE["seed"])) == pytest.approx(
-            ORACLE["checksums"][model], rel=1e-9
-        ), "numpy drew other random weights than when the oracle was recorded"
-        paths[model] = path
-    return paths
+def weights(detectron2_weights):
+    for model, (_, written) in detectron2_weights.items():
+        assert written == pytest.approx(ORACLE["checksums"][model], rel=1e-9), (
+            "numpy drew other random weights than when the oracle was recorded"
+        )
+    assert ORACLE["seed"] == ORACLE_SEED
+    return {model: path for model, (path, _) in detectron2_weights.items()}
 
 
 def nms_tie(box, category: int, score: float, boxes: np.ndarray, categories: np.ndarray, scores: np.ndarray) -> bool:

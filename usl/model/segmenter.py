@@ -33,7 +33,7 @@ Tensor = torch.Tensor
 TORCHVISION_COCO_IDS = tuple(range(1, 91))
 
 
-@dataclass
+@dataclass(frozen=True)
 class SegmenterConfig:
     """detectron2's inference defaults (``INPUT.{MIN,MAX}_SIZE_TEST``, ``MODEL.ROI_HEADS.*_TEST``)."""
 

