@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import os
+from pathlib import Path
 
 import pytest
 
@@ -15,6 +17,7 @@ from usl.model.segmenter import InstanceSegmenter
 from usl.records import RecordsDataset
 from usl.records.validate import validate_dataset
 
+REPO = Path(__file__).parents[3]
 SCENE = "scene0003_00"
 STRIDE = 4
 
@@ -43,7 +46,7 @@ def convert(scans, out, weights, *extra: str) -> int:
         [
             "--out", str(out), "--quiet", "--scans-root", str(scans / "scans"), "--splits-dir", str(scans / "splits"),
             "--splits", "train", "--stride", str(STRIDE), "--resolution", "48x36", "--masks", "model",
-            "--weights", str(weights), "--device", "cpu", "--segment-size", "160", "266", "--min-score", "0.05",
+            "--weights", str(weights), "--device", "cpu", "--segment-size", "160", "266", "--min-score", "0.1",
             "--min-track-frames", "2", "--iou-threshold", "0.05", "--match-across-categories", *extra,
         ]
     )  # fmt: skip
@@ -76,7 +79,7 @@ def test_model_masks_convert_a_scan_and_a_resumed_build_never_segments_it_again(
     assert sorted(int(f) for f in cached["frames"]) == list(range(0, 24, STRIDE))
     detections = [d for found in cached["frames"].values() for d in found]
     kept = {c["coco_id"] for c in load_dataset_spec("scannet")["categories"]}
-    assert detections and all(d["category_id"] in kept and d["score"] >= 0.05 for d in detections)
+    assert detections and all(d["category_id"] in kept and d["score"] >= 0.1 for d in detections)
 
     rows = RecordsDataset(out, "train").read_scene(SCENE, columns=["view_id", "instances"])
     assert rows and all(row["view_id"] % STRIDE == 0 for row in rows)
@@ -99,3 +102,27 @@ def test_model_masks_need_weights_that_exist(scans, tmp_path, capsys):
     (tmp_path / "bad.pkl").write_bytes(b"not a pickle")
     assert convert(scans, tmp_path / "b", tmp_path / "bad.pkl", "--no-skip-bad-scenes") == 2
     assert "bad.pkl" in capsys.readouterr().err
+
+
+@pytest.mark.slow  # a local Ray instance whose workers each load the 240 MB weights: minutes on a small machine
+def test_model_masks_under_ray_write_what_a_local_build_writes(scans, tmp_path, weights):
+    ray = pytest.importorskip("ray")
+    path = os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")])
+    ray.init(
+        num_cpus=2,
+        include_dashboard=False,
+        log_to_driver=False,
+        runtime_env={"env_vars": {"PYTHONPATH": path, "OMP_NUM_THREADS": "1"}},
+    )
+    try:
+        assert convert(scans, tmp_path / "ray", weights, "--executor", "ray") == 0
+    finally:
+        ray.shutdown()
+    assert convert(scans, tmp_path / "local", weights) == 0
+    assert shard_bytes(tmp_path / "ray") == shard_bytes(tmp_path / "local")
+    cached = [(tmp_path / run / ".build" / "segments" / f"{SCENE}.json").read_text() for run in ("ray", "local")]
+    assert cached[0] == cached[1]
+
+
+def shard_bytes(root):
+    return {p.relative_to(root): p.read_bytes() for p in sorted(root.rglob("*.parquet")) if ".build" not in p.parts}
