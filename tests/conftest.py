@@ -1,5 +1,8 @@
 """Fixtures shared by every test folder."""
 
+import os
+from pathlib import Path
+
 import pytest
 import torch
 
@@ -34,3 +37,18 @@ def detectron2_weights(tmp_path_factory):
         path = folder / f"{model}.pkl"
         written[model] = (path, checksum(write_random_checkpoint(path, model, ORACLE_SEED)))
     return written
+
+
+@pytest.fixture(scope="module")
+def local_ray():
+    """A local two-CPU Ray instance whose workers import the test helpers (tests.*) from the repository root."""
+    ray = pytest.importorskip("ray")
+    path = os.pathsep.join([str(Path(__file__).parents[1]), os.environ.get("PYTHONPATH", "")])
+    ray.init(
+        num_cpus=2,
+        include_dashboard=False,
+        log_to_driver=False,
+        runtime_env={"env_vars": {"PYTHONPATH": path, "OMP_NUM_THREADS": "1"}},
+    )
+    yield
+    ray.shutdown()

@@ -87,7 +87,7 @@ def detector_for_weights(path: Union[str, Path], cfg: SegmenterConfig) -> tuple[
     )
     backbone = BackboneConfig(resnet=ResNetConfig(stride_in_1x1=stride_in_1x1))
     detector = MaskRCNN(classes, DetectorConfig(backbone=backbone, roi_heads=roi_heads))
-    report = init_detector(detector, weights.path, weights.format)
+    report = init_detector(detector, weights)
     if report.reinitialised or report.kept.keys() - {"backbone.bottom_up.fc"}:
         raise WeightsError(f"weights file {weights.path} does not cover the detector: " + "; ".join(report.lines()))
     return detector.eval(), category_ids

@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import json
-import os
-from pathlib import Path
 
 import pytest
 
@@ -17,7 +15,6 @@ from usl.model.segmenter import InstanceSegmenter
 from usl.records import RecordsDataset
 from usl.records.validate import validate_dataset
 
-REPO = Path(__file__).parents[3]
 SCENE = "scene0003_00"
 STRIDE = 4
 
@@ -105,19 +102,8 @@ def test_model_masks_need_weights_that_exist(scans, tmp_path, capsys):
 
 
 @pytest.mark.slow  # a local Ray instance whose workers each load the 240 MB weights: minutes on a small machine
-def test_model_masks_under_ray_write_what_a_local_build_writes(scans, tmp_path, weights):
-    ray = pytest.importorskip("ray")
-    path = os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")])
-    ray.init(
-        num_cpus=2,
-        include_dashboard=False,
-        log_to_driver=False,
-        runtime_env={"env_vars": {"PYTHONPATH": path, "OMP_NUM_THREADS": "1"}},
-    )
-    try:
-        assert convert(scans, tmp_path / "ray", weights, "--executor", "ray") == 0
-    finally:
-        ray.shutdown()
+def test_model_masks_under_ray_write_what_a_local_build_writes(scans, tmp_path, weights, local_ray):
+    assert convert(scans, tmp_path / "ray", weights, "--executor", "ray") == 0
     assert convert(scans, tmp_path / "local", weights) == 0
     assert shard_bytes(tmp_path / "ray") == shard_bytes(tmp_path / "local")
     cached = [(tmp_path / run / ".build" / "segments" / f"{SCENE}.json").read_text() for run in ("ray", "local")]
