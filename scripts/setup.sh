@@ -1,14 +1,25 @@
 #!/usr/bin/env bash
-# One-time, idempotent set-up of a fresh machine: offscreen OpenGL (EGL/Mesa), torch (CPU build
-# where no GPU build is wanted), and usl itself in editable mode with its test extras.
+# One-time, idempotent set-up of a fresh machine: offscreen OpenGL (EGL/Mesa), torch (CPU build where
+# no GPU build is wanted), and usl itself in editable mode with its test extras.
+#   bash scripts/setup.sh            # what the main job needs
+#   bash scripts/setup.sh --tests    # also headless Chromium, which the HTML viewer's test renders with
 set -euo pipefail
 cd "$(dirname "$0")/.."
+TESTS=0
+[[ ${1:-} == --tests ]] && TESTS=1
 
 if ! ldconfig -p | grep -q 'libEGL_mesa.so'; then
   echo "[setup] installing Debian's EGL/Mesa packages for offscreen rendering"
   SUDO=""; [ "$(id -u)" -ne 0 ] && SUDO="sudo"
   $SUDO apt-get update -qq
   DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq libegl1 libegl-mesa0 libgl1-mesa-dri libgles2 >/dev/null
+fi
+
+if ((TESTS)) && ! command -v chromium >/dev/null; then  # ~1.5 min and ~350 MB: the tests alone need it
+  echo "[setup] installing Debian's chromium"
+  SUDO=""; [ "$(id -u)" -ne 0 ] && SUDO="sudo"
+  $SUDO apt-get update -qq
+  DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq chromium >/dev/null
 fi
 
 PY=${PYTHON:-python3}

@@ -3,7 +3,7 @@
 # test suite (slow tests excluded).
 set -euo pipefail
 cd "$(dirname "$0")/.."
-bash scripts/setup.sh
+bash scripts/setup.sh --tests
 ${PYTHON:-python3} -m ruff check .
 ${PYTHON:-python3} -m ruff format --check .
 lint-imports  # the layering contracts in pyproject.toml

@@ -63,6 +63,9 @@ def test_every_row_with_a_checkpoint(data, tmp_path, capsys):
     assert by_name["Layout-only (USL)"]["predicts_shape"] is False
     rows = [json.loads(line) for line in (out / "objects.jsonl").read_text().splitlines()]
     assert all(r["num_views"] == 1 for r in rows)  # 2 other views each, furthest half -> 1
+    # one id space with the records: each id next to its name, both for the true and the predicted class
+    category = {int(c["id"]): c["name"] for c in json.loads((dataset / "manifest.json").read_text())["categories"]}
+    assert all(category[r["category_id"]] == r["category"] and category[r["label"]] == r["label_name"] for r in rows)
     assert {r["predictor"] for r in rows} >= {"USL", "USL w/ true depth"}
     assert len(list((out / "pictures").rglob("*.png"))) == len(names)
     table = (out / "table.md").read_text()

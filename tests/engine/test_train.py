@@ -103,12 +103,30 @@ def test_training_feedback_files(records, tmp_path, monkeypatch, capsys):
     assert all(0.0 <= r["val/mask_iou_input"] <= 1.0 and 0.0 <= r["val/mask_iou_views"] <= 1.0 for r in rows)
     assert rows[0]["val/chamfer"] > 0  # the synthetic records have 3D ground truth
     curves = cv2.imread(str(out / "curves.png"))
-    assert curves is not None and curves.shape[0] > 600 and curves.std() > 10  # three panels, not a blank canvas
+    assert curves is not None and curves.shape[0] > 600 and curves.std() > 10  # several panels, not a blank canvas
+    _check_tensorboard(out, summary)
 
     monkeypatch.chdir(tmp_path)  # another folder: the absolute root still resolves
     assert main(["--resume", f"data.root={records}", "--out", str(out), "optim.max_iter=5", "val.period=0"]) == 0
     assert load_config(out / "config.yaml").optim.max_iter == 5
     assert "resuming at iteration 4" in (out / "log.txt").read_text()
+
+
+def _check_tensorboard(run_dir, summary):
+    """TensorBoard's own readers find the run at the top of its parent folder, with the CSV logs' values."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+    from tensorboard.backend.event_processing.plugin_event_multiplexer import EventMultiplexer
+
+    assert f"TensorBoard events (tensorboard --logdir {run_dir.parent})" in summary
+    runs = EventMultiplexer().AddRunsFromDirectory(str(run_dir.parent)).Reload().Runs()
+    assert run_dir.name in runs  # `tensorboard --logdir runs/` lists the run by its folder name
+    events = EventAccumulator(str(run_dir)).Reload()
+    for csv_name, key in (("metrics.csv", "loss"), ("validation.csv", "val/mask_iou_input")):
+        logged = {int(r["iteration"]): r[key] for r in read_metrics(run_dir, csv_name)}
+        scalars = {e.step: e.value for e in events.Scalars(key)}
+        assert scalars.keys() == logged.keys() and all(
+            scalars[i] == pytest.approx(v, rel=1e-6) for i, v in logged.items()
+        ), key
 
 
 def test_two_process_ddp_step_equals_one_process_on_the_combined_batch(records, tmp_path):

@@ -171,6 +171,7 @@ def tiny_checkpoint(
     spec = load_dataset_spec("scene_shapes")
     cfg = load_config("tiny", overrides)
     cfg.model.categories = categories or tuple(c["name"] for c in spec["categories"])
+    cfg.model.category_ids = () if categories else tuple(int(c["id"]) for c in spec["categories"])
     cfg.model.layout_range = LayoutRange(**{k: float(v) for k, v in spec["layout"].items()})
     torch.manual_seed(seed)
     model = USLModel(cfg.model, cfg.loss)

@@ -13,6 +13,7 @@ import torch
 import trimesh
 
 from tests.evaluation.eval_helpers import tiny_checkpoint
+from usl.data.frames import CategoryIndex
 from usl.evaluation.baselines import sphere_verts
 from usl.inference.gltf_scene import CAMERA_NODE, IMAGE_NODE
 from usl.inference.predict import camera_for, image_frame, model_detector, predict_images, read_image, read_intrinsics
@@ -20,7 +21,7 @@ from usl.cli.predict import main
 from usl.model.outputs import ObjectPredictions
 from usl.errors import UslError
 
-CATEGORIES = ["chair", "sofa", "dining table"]
+CATEGORIES = CategoryIndex([{"id": 1, "name": "chair"}, {"id": 2, "name": "sofa"}, {"id": 3, "name": "dining table"}])
 
 
 @pytest.fixture(scope="module")
@@ -63,13 +64,16 @@ def test_predict_writes_named_meshes_and_overlay(image_path, tmp_path):
     expected = fake_detector(_frame_for_fov(image_path)).verts.double().numpy()
     np.testing.assert_allclose(scene.geometry["00_chair"].vertices, expected[0] * GLTF_FROM_OPENCV, atol=1e-5)
     np.testing.assert_allclose(scene.geometry["01_dining_table"].vertices, expected[1] * GLTF_FROM_OPENCV, atol=1e-5)
-    assert len(trimesh.load(tmp_path / "room.obj").vertices) == 2 * expected.shape[1]  # objects only
+    obj = trimesh.load_scene(tmp_path / "room.obj")  # objects only, each its own mesh
+    assert sorted(obj.geometry) == ["00_chair", "01_dining_table"]
+    np.testing.assert_allclose(obj.geometry["00_chair"].vertices, expected[0] * GLTF_FROM_OPENCV, atol=1e-5)
     assert len(trimesh.load(tmp_path / "room.ply").vertices) == 2 * expected.shape[1]
     page = (tmp_path / "room.html").read_text()
     assert "<html" in page and "$B64GLTF" not in page and 'src="http' not in page  # three.js and the GLB inline
     overlay = cv2.imread(str(tmp_path / "room_overlay.png"))
-    assert overlay.shape == (80, 120, 3)
-    assert not np.array_equal(overlay, cv2.imread(str(image_path)))
+    assert overlay.shape == (512, 768, 3)  # the 120x80 input drawn at 512 on its short side
+    upscaled = cv2.resize(cv2.imread(str(image_path)), (768, 512), interpolation=cv2.INTER_CUBIC)
+    assert not np.array_equal(overlay, upscaled)
 
 
 def test_glb_is_y_up_with_the_input_camera_image_plane_and_extras(image_path, tmp_path):
@@ -101,7 +105,7 @@ def test_glb_is_y_up_with_the_input_camera_image_plane_and_extras(image_path, tm
         for node in ("00_chair", "01_dining_table")
     }
     assert extras["00_chair"]["category"] == "chair" and extras["00_chair"]["score"] == pytest.approx(0.9)
-    assert extras["01_dining_table"]["category"] == "dining table" and extras["01_dining_table"]["category_id"] == 2
+    assert extras["01_dining_table"]["category"] == "dining table" and extras["01_dining_table"]["category_id"] == 3
 
 
 def _frame_for_fov(image_path):
@@ -187,7 +191,7 @@ def test_cli_with_tiny_checkpoint(image_path, checkpoint, tmp_path, capsys):
     scene = trimesh.load(out / "room.glb")
     objects = [name for name in scene.geometry if name != IMAGE_NODE]
     assert len(objects) == kept
-    assert all(name.split("_", 1)[1] in {c.replace(" ", "_") for c in categories} for name in objects)
+    assert all(name.split("_", 1)[1] in {c.replace(" ", "_") for c in categories.names} for name in objects)
 
 
 @pytest.mark.parametrize(
@@ -212,3 +216,31 @@ def test_cli_bad_paths_give_one_line_errors(case, message, image_path, checkpoin
     assert rc == 2 and len(err.splitlines()) == 1
     assert err.startswith("usl-predict: error:")
     assert re.search(message, err), err
+
+
+def test_glb_camera_keeps_the_full_K_and_fov_auto_warns_without_exif(image_path, checkpoint, tmp_path, capsys):
+    K = np.array([[100.0, 0.5, 50.0], [0.0, 110.0, 30.0], [0.0, 0.0, 1.0]])  # off-centre, skewed
+    predict_images(fake_detector, [image_path], tmp_path, CATEGORIES, K=K)
+    glb = (tmp_path / "room.glb").read_bytes()
+    json_length = int.from_bytes(glb[12:16], "little")
+    tree = json.loads(glb[20 : 20 + json_length])
+    assert tree["cameras"][0]["extras"] == {"K": K.tolist(), "image_size": [120, 80]}
+    # the image plane is unlit, in every viewer that knows the extension; the objects are shaded
+    unlit = [
+        n["name"]
+        for n in tree["nodes"]
+        for m in _node_materials(tree, n)
+        if "KHR_materials_unlit" in m.get("extensions", {})
+    ]
+    assert unlit == [IMAGE_NODE] and "KHR_materials_unlit" in tree["extensionsUsed"]
+    rc = main([str(image_path), "--checkpoint", str(checkpoint), "--fov", "auto", "--out", str(tmp_path / "a")])
+    assert rc == 0 and (tmp_path / "a" / "room_overlay.png").is_file()
+    assert (
+        f"usl-predict: warning: {image_path} has no EXIF FocalLengthIn35mmFilm: assuming a 60 degree horizontal"
+        in capsys.readouterr().err
+    )
+
+
+def _node_materials(tree, node):
+    primitives = tree["meshes"][node["mesh"]]["primitives"] if "mesh" in node else []
+    return [tree["materials"][p["material"]] for p in primitives if "material" in p]

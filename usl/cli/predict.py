@@ -1,13 +1,20 @@
 """``usl-predict``: 3D objects from single images with a trained model.
 
     usl-predict photo.jpg --checkpoint runs/hypersim --fov 60                 # -> predictions/photo.glb
+    usl-predict IMG_0042.jpg --checkpoint runs/hypersim --fov auto            # field of view from EXIF
     usl-predict *.png --checkpoint run/ --K intrinsics.txt --formats glb,html,obj --out preds/
 
 For each image: ``<name>.glb`` with one mesh per detected object (node ``<index>_<category>``, its
-category and score in the node's ``extras``), a camera matching the input view and the image as a
-textured plane behind the objects; ``--formats`` adds ``html`` (a self-contained 3D viewer),
-``obj`` and ``ply`` (objects only; a PLY merges them, each with its own vertex colour); and
-``<name>_overlay.png``, the meshes rendered over the image with boxes and scores.
+category name, the dataset's category id and score in the node's ``extras``), a camera matching the
+input view (the full K in its ``extras``) and the image as a textured plane behind the objects;
+``--formats`` adds ``html`` (a 3D viewer that opens at the input camera; offline, one file),
+``obj`` and ``ply`` (objects only); and ``<name>_overlay.png``, the meshes rendered over the image
+with boxes and scores. Only glTF (and the page) keeps each object's category and score: an OBJ keeps
+the objects apart as named groups with one material each (trimesh loads them as separate meshes),
+a PLY is one merged mesh with a vertex colour per object.
+
+``--fov auto`` reads EXIF FocalLengthIn35mmFilm (matched on the diagonal, as the EXIF standard
+does); without it, it assumes 60 degrees and says so.
 
 Axes: glTF's, +Y up with the camera looking down -Z (``diag(1, -1, -1)`` applied to the OpenCV
 camera frame of docs/design.md §2), metres; ``--axes opencv`` keeps x right, y down, z forward. ``K``
@@ -19,13 +26,25 @@ from __future__ import annotations
 
 import argparse
 import sys
+import warnings
 from pathlib import Path
 from typing import Sequence
 
 from usl.cli.common import common_options, make_parser, resolve_device
+from usl.inference.field_of_view import FieldOfViewWarning
 from usl.inference.formats import FORMATS
 
 COMMAND = "usl-predict"
+
+
+def field_of_view(text: str) -> float | str:
+    """``auto`` or a number of degrees."""
+    if text == "auto":
+        return text
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected degrees or 'auto', got {text!r}") from None
 
 
 def parser() -> argparse.ArgumentParser:
@@ -40,7 +59,11 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--checkpoint", required=True, help="checkpoint file or training run folder")
     camera = p.add_mutually_exclusive_group(required=True)
     camera.add_argument("--K", dest="k_file", help="3x3 intrinsics for the images' resolution (text or JSON)")
-    camera.add_argument("--fov", type=float, help="horizontal field of view in degrees (centred principal point)")
+    camera.add_argument(
+        "--fov",
+        type=field_of_view,
+        help="horizontal field of view in degrees (centred principal point), or 'auto' (EXIF, else 60)",
+    )
     p.add_argument("--opencv-k", action="store_true", help="K puts pixel centres at integers (OpenCV): shift by +0.5")
     p.add_argument("--formats", default="glb", help=f"comma-separated output formats from {', '.join(FORMATS)}")
     p.add_argument("--score-threshold", type=float, default=0.5, help="keep detections scoring at least this")
@@ -67,21 +90,28 @@ def main(argv: Sequence[str] | None = None) -> int:
                 f"image {missing[0]} does not exist" + (f" (and {len(missing) - 1} more)" if len(missing) > 1 else "")
             )
         detect, categories = model_detector(args.checkpoint, resolve_device(args.device))
-        results = predict_images(
-            detect,
-            args.images,
-            args.out,
-            categories,
-            K,
-            args.fov,
-            formats,
-            args.score_threshold,
-            "gltf" if args.axes == "opengl" else args.axes,
-            args.opencv_k,
-        )
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always", FieldOfViewWarning)
+            results = predict_images(
+                detect,
+                args.images,
+                args.out,
+                categories,
+                K,
+                args.fov,
+                formats,
+                args.score_threshold,
+                "gltf" if args.axes == "opengl" else args.axes,
+                args.opencv_k,
+            )
     except UslError as exc:
         print(f"{COMMAND}: error: {exc}", file=sys.stderr)
         return 2
+    for warning in caught:  # one line per image whose field of view was assumed; others as Python shows them
+        if issubclass(warning.category, FieldOfViewWarning):
+            print(f"{COMMAND}: warning: {warning.message}", file=sys.stderr)
+        else:
+            warnings.warn_explicit(warning.message, warning.category, warning.filename, warning.lineno)
     for image, result in results.items():
         if args.quiet:
             continue

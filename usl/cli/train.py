@@ -10,9 +10,10 @@
     usl-train --config tiny --list-keys                 # every key: type, value in the recipe, doc line
 
 The run folder gets ``config.yaml`` (the resolved config, ``data.root`` absolute), ``log.txt``
-(what the run printed), ``metrics.csv`` (and TensorBoard events when tensorboard is installed),
-``validation.csv`` (periodic validation on ``data.val_split``, keys ``val.*``), ``curves.png``
-(losses and validation metrics against iterations) and ``checkpoints/`` (``usl.engine.checkpoint``).
+(what the run printed), ``metrics.csv`` (and TensorBoard events beside it with ``usl[tensorboard]``:
+``tensorboard --logdir runs/`` shows every run), ``validation.csv`` (periodic validation on
+``data.val_split``, keys ``val.*``), ``curves.png`` (losses and one panel per kind of validation
+metric against iterations) and ``checkpoints/`` (``usl.engine.checkpoint``).
 """
 
 from __future__ import annotations

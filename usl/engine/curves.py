@@ -1,7 +1,9 @@
 """``curves.png``: a run's training losses and validation metrics against iterations (matplotlib).
 
 Top: the total loss and each loss term of ``metrics.csv`` (log scale when all are positive).
-Middle: the learning rate. Bottom: the ``val/*`` metrics of ``validation.csv`` (when it exists).
+Then the learning rate, then one panel per kind of ``val/*`` metric of ``validation.csv`` (when
+it exists): overlaps (IoU, gIoU), F1 in percent, depth L1 in metres, Chamfer-L2 in square metres,
+so each quantity reads on its own axis. Legends sit right of the panels, off the curves.
 """
 
 from __future__ import annotations
@@ -27,6 +29,26 @@ NOT_LOSSES = {
 }
 
 
+# Validation panels: (title, metric name prefixes after "val/"); other metrics get a panel of their own.
+VALIDATION_PANELS = (
+    ("overlap: IoU, gIoU (higher is better)", ("mask_iou", "box_giou")),
+    ("F1 (%, higher is better)", ("f1",)),
+    ("depth L1 (m, lower is better)", ("depth_l1",)),
+    ("Chamfer-L2 (m², lower is better)", ("chamfer",)),
+)
+
+
+def validation_groups(keys: Sequence[str]) -> list[tuple[str, list[str]]]:
+    """The ``val/*`` keys grouped by ``VALIDATION_PANELS`` (panels without keys left out)."""
+    groups = [
+        (title, [k for k in keys if k.removeprefix("val/").startswith(prefixes)])
+        for title, prefixes in VALIDATION_PANELS
+    ]
+    known = {k for _, members in groups for k in members}
+    groups += [(k.removeprefix("val/"), [k]) for k in keys if k not in known]
+    return [(title, members) for title, members in groups if members]
+
+
 def loss_keys(rows: Sequence[dict[str, float]]) -> list[str]:
     """``loss`` first, then the terms it sums, in column order."""
     keys = list(dict.fromkeys(k for row in rows for k in row))
@@ -45,8 +67,8 @@ def _plot(axes, rows: Sequence[dict[str, float]], keys: Sequence[str], marker: s
     return drawn
 
 
-def plot_curves(run_dir: str | Path, validation_csv: str | None = None) -> Path | None:
-    """Write ``run_dir/curves.png``; returns its path (None when the run logged nothing yet)."""
+def curves_figure(run_dir: str | Path, validation_csv: str | None = None):
+    """The matplotlib Figure of ``curves.png`` (None when the run logged nothing yet)."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
@@ -55,26 +77,25 @@ def plot_curves(run_dir: str | Path, validation_csv: str | None = None) -> Path 
         return None
     rows = read_metrics(run_dir)
     val_rows = read_metrics(run_dir, validation_csv) if validation_csv and (run_dir / validation_csv).is_file() else []
-    val_keys = list(dict.fromkeys(k for row in val_rows for k in row if k.startswith("val/")))
+    groups = validation_groups(list(dict.fromkeys(k for row in val_rows for k in row if k.startswith("val/"))))
     if not rows:
         return None
-    panels = 3 if val_keys else 2
-    ratios = [3, 1, 3][:panels]
-    height = sum(ratios) + 1.2
-    figure = Figure(figsize=(9, height))
+    ratios = [3, 1] + [2] * len(groups)
+    height = sum(ratios) + 0.6 * len(ratios)
+    figure = Figure(figsize=(11, height))
     FigureCanvasAgg(figure)
-    # fixed margins: a constrained layout costs seconds on a busy CPU
+    # fixed margins, legends in the right margin: a constrained layout costs seconds on a busy CPU
     losses, lr, *rest = figure.subplots(
-        panels,
+        len(ratios),
         1,
         sharex=True,
         gridspec_kw={
             "height_ratios": ratios,
-            "hspace": 0.45,
+            "hspace": 0.5,
             "top": 1 - 0.8 / height,
             "bottom": 0.5 / height,
-            "left": 0.1,
-            "right": 0.97,
+            "left": 0.08,
+            "right": 0.74,
         },
     )
     keys = loss_keys(rows)
@@ -82,19 +103,26 @@ def plot_curves(run_dir: str | Path, validation_csv: str | None = None) -> Path 
     if all(r[k] > 0 for r in rows for k in keys if k in r):
         losses.set_yscale("log")
     losses.set_title("training losses (means over each logging interval)")
-    losses.legend(fontsize="small", ncol=3)
     _plot(lr, rows, ["lr"])
     lr.set_title("learning rate")
-    if rest:
-        (val,) = rest
-        _plot(val, val_rows, val_keys, marker="o")
-        val.set_title(f"validation metrics ({validation_csv})")
-        val.legend(fontsize="small", ncol=3)
+    for axes, (title, members) in zip(rest, groups):
+        _plot(axes, val_rows, members, marker="o")
+        axes.set_title(f"validation: {title}")
     for axes in [losses, lr, *rest]:
         axes.grid(alpha=0.3)
+        if len(axes.get_lines()) > 1:
+            axes.legend(fontsize="small", loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0)
     figure.axes[-1].set_xlabel("iteration")
     figure.suptitle(f"{run_dir.name}", y=1 - 0.2 / height)
-    path = run_dir / CURVES_NAME
+    return figure
+
+
+def plot_curves(run_dir: str | Path, validation_csv: str | None = None) -> Path | None:
+    """Write ``run_dir/curves.png``; returns its path (None when the run logged nothing yet)."""
+    figure = curves_figure(run_dir, validation_csv)
+    if figure is None:
+        return None
+    path = Path(run_dir) / CURVES_NAME
     tmp = path.with_name(f".{path.name}.tmp.png")
     figure.savefig(tmp, dpi=100)
     tmp.replace(path)

@@ -20,7 +20,7 @@ from tqdm import tqdm
 from usl.config import Config
 from usl.engine.checkpoint import CheckpointError, resolve_checkpoint
 from usl.engine.curves import plot_curves
-from usl.engine.run_log import CSV_NAME
+from usl.engine.run_log import CSV_NAME, tensorboard_events
 from usl.engine.command import COMMAND
 from usl.engine.validation import CSV_NAME as VALIDATION_CSV
 from usl.engine.validation import PeriodicValidation
@@ -93,6 +93,12 @@ class TrainingFeedback:
         logs = [self.run_dir / LOG_NAME, self.run_dir / CSV_NAME]
         logs += [self.run_dir / VALIDATION_CSV] if (self.run_dir / VALIDATION_CSV).is_file() else []
         logs += [curves] if curves is not None else []
+        events = tensorboard_events(self.run_dir)
+        logs += (
+            [f"TensorBoard events (tensorboard --logdir {self.run_dir.parent})"]
+            if events
+            else ["no TensorBoard events (pip install 'usl[tensorboard]')"]
+        )
         self.say(
             f"{state} at iteration {iteration} after {_duration(time.perf_counter() - self.start)}; "
             f"final checkpoint {checkpoint}; logs: {', '.join(str(p) for p in logs)}"

@@ -1,7 +1,10 @@
-"""Training logs on rank 0: a CSV file always, TensorBoard when it is installed.
+"""Training logs on rank 0: a CSV file always, TensorBoard events when tensorboard is installed
+(``pip install 'usl[tensorboard]'``).
 
-On resume the CSV keeps its rows up to the checkpoint's iteration and drops later ones (written
-by the interrupted run after its last checkpoint), so the file reads as one uninterrupted run.
+The events go into the run folder itself, so ``tensorboard --logdir runs/`` lists every run by its
+folder name. On resume the CSV keeps its rows up to the checkpoint's iteration and drops later ones
+(written by the interrupted run after its last checkpoint), and TensorBoard hides the interrupted
+run's later events (``purge_step``), so both read as one uninterrupted run.
 """
 
 from __future__ import annotations
@@ -27,7 +30,7 @@ class RunLog:
             self._rewrite()
         elif self.path.exists():
             self.path.unlink()
-        self.tensorboard = _tensorboard(run_dir)
+        self.tensorboard = _tensorboard(run_dir, resume_iteration)
 
     def _rewrite(self) -> None:
         tmp = self.path.with_name(f".{self.path.name}.tmp-{os.getpid()}")
@@ -54,12 +57,17 @@ class RunLog:
             self.tensorboard.close()
 
 
-def _tensorboard(run_dir: Path):
+def _tensorboard(run_dir: Path, resume_iteration: int | None):
     try:
         from torch.utils.tensorboard import SummaryWriter
-    except ImportError:  # tensorboard is optional
+    except ImportError:  # tensorboard is optional: usl[tensorboard]
         return None
-    return SummaryWriter(str(run_dir / "tensorboard"))
+    return SummaryWriter(str(run_dir), purge_step=None if resume_iteration is None else resume_iteration + 1)
+
+
+def tensorboard_events(run_dir: Path) -> list[Path]:
+    """The run's TensorBoard event files (what ``tensorboard --logdir`` reads)."""
+    return sorted(Path(run_dir).glob("events.out.tfevents.*"))
 
 
 def read_metrics(run_dir: str | Path, name: str = CSV_NAME) -> list[dict[str, float]]:

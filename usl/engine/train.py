@@ -33,6 +33,7 @@ def fill_dataset_fields(cfg: Config, records: RecordsDataset) -> None:
     if cfg.model.categories and tuple(cfg.model.categories) != names:
         raise ConfigError(f"model.categories {list(cfg.model.categories)} differ from {records.root}'s {list(names)}")
     cfg.model.categories = names
+    cfg.model.category_ids = tuple(int(c["id"]) for c in records.categories)
     if cfg.model.layout_range.z1 <= 0:
         layout = records.manifest.get("layout")
         if not layout:

@@ -227,8 +227,9 @@ def _object_rows(
     config: EvalConfig,
     device: torch.device,
 ) -> list[dict[str, Any]]:
-    """One row per scored object. ``label`` is the predicted class, ``category`` the true one's name (what
-    per-category means group by, so a detector's wrong labels do not move its objects between categories)."""
+    """One row per scored object. ``category_id``/``category``: the true class (what per-category means
+    group by, so a detector's wrong labels do not move its objects between categories); ``label``/
+    ``label_name``: the predicted one. Ids are the dataset's, as in its records and COCO export."""
     pred, frame = pr.pred, inp.frame
     shape3d = _shape_metrics(pred, inp, config, device)
     true_label = dict(zip(frame.instance_ids.tolist(), frame.labels.tolist()))
@@ -243,8 +244,10 @@ def _object_rows(
             "scene_id": frame.scene_id,
             "input_view": frame.view_id,
             "instance_id": iid,
+            "category_id": categories.ids[true_label[iid]],
             "category": categories.names[true_label[iid]],
-            "label": int(pred.labels[o]),
+            "label": categories.ids[int(pred.labels[o])],
+            "label_name": categories.names[int(pred.labels[o])],
             "score": float(pred.scores[o]),
             "z": float(pred.z[o]),
             "rho": float(pred.rho[o]),

@@ -6,23 +6,27 @@ y down, z forward). With ``axes="gltf"`` (the default of ``usl-predict``) points
 sits at the origin with the identity pose. With ``axes="opencv"`` the points stay as they are and
 the camera node carries the flip instead: the view through the camera is the same either way.
 
-The scene holds one node per object (``<index>_<category>``; ``extras``: category, category id,
-score, z, rho, box), a perspective camera matching the input view (``yfov`` from K and the image
-height, ``aspectRatio`` from K and the width; glTF has no principal point, so an off-centre one is
-not represented) and the input image as a textured plane filling the camera's view behind the
-objects (node ``input_image``).
+The scene holds one node per object (``<index>_<category>``; ``extras``: category name, the
+dataset's category id (as in its records, manifest and COCO export), score, z, rho, box), a perspective camera matching the input view (``yfov`` from K and the image
+height, ``aspectRatio`` from K and the width; glTF has no principal point, so the full K and the
+image size are kept in the camera's ``extras``: ``{"K": 3x3 rows, "image_size": [W, H]}``, OpenCV
+axes, pixel centres at +0.5) and the input image as a textured plane filling the camera's view
+behind the objects (node ``input_image``). ``scene_glb`` writes the file with those extras.
 """
 
 from __future__ import annotations
 
+import json
 import math
-from typing import Sequence
+import struct
+from typing import Any
 
 import numpy as np
 import torch
 import trimesh
 from PIL import Image
 
+from usl.data.frames import CategoryIndex
 from usl.vis.visualize import palette
 from usl.geometry.cameras import opencv_to_opengl_camera, unproject
 from usl.model.outputs import ObjectPredictions
@@ -39,12 +43,17 @@ def axes_matrix(axes: str) -> np.ndarray:
     return opencv_to_opengl_camera()[:3, :3].numpy() if axes == "gltf" else np.eye(3)
 
 
-def object_names(pred: ObjectPredictions, categories: Sequence[str]) -> list[str]:
-    return [f"{n:02d}_{categories[int(l)].replace(' ', '_')}" for n, l in enumerate(pred.labels.tolist())]
+def object_names(pred: ObjectPredictions, categories: CategoryIndex) -> list[str]:
+    return [f"{n:02d}_{categories.names[int(l)].replace(' ', '_')}" for n, l in enumerate(pred.labels.tolist())]
 
 
-def object_meshes(pred: ObjectPredictions, categories: Sequence[str], axes: str) -> trimesh.Scene:
-    """One named, coloured node per object, its category and score in the node's ``extras``."""
+def object_meshes(
+    pred: ObjectPredictions, categories: CategoryIndex, axes: str, material: bool = False
+) -> trimesh.Scene:
+    """One named, coloured node per object, its category and score in the node's ``extras``.
+
+    Colours are vertex colours (what OBJ and PLY keep) or, with ``material``, a matte glTF material:
+    a glTF mesh without a material is fully metallic, which shows black under diffuse light."""
     flip = axes_matrix(axes)
     faces = pred.faces.cpu().numpy()
     scene = trimesh.Scene()
@@ -60,10 +69,17 @@ def object_meshes(pred: ObjectPredictions, categories: Sequence[str], axes: str)
     )
     for name, verts, color, label, score, z, rho, box in objects:
         mesh = trimesh.Trimesh(verts @ flip.T, faces, process=False)
-        mesh.visual.vertex_colors = np.array([*color, 255], dtype=np.uint8)
+        if material:
+            mesh.visual = trimesh.visual.TextureVisuals(
+                material=trimesh.visual.material.PBRMaterial(
+                    name=name, baseColorFactor=[*color, 255], metallicFactor=0.0, roughnessFactor=0.8
+                )
+            )
+        else:
+            mesh.visual.vertex_colors = np.array([*color, 255], dtype=np.uint8)
         extras = {
-            "category": categories[int(label)],
-            "category_id": int(label),
+            "category": categories.names[int(label)],
+            "category_id": categories.ids[int(label)],  # the dataset's id, as in its records and COCO export
             "score": round(float(score), 6),
             "z": float(z),
             "rho": float(rho),
@@ -103,10 +119,10 @@ def image_plane(image: np.ndarray, K: np.ndarray, depth: float, axes: str) -> tr
 
 
 def prediction_scene(
-    pred: ObjectPredictions, categories: Sequence[str], image: np.ndarray, K: np.ndarray, axes: str = "gltf"
+    pred: ObjectPredictions, categories: CategoryIndex, image: np.ndarray, K: np.ndarray, axes: str = "gltf"
 ) -> trimesh.Scene:
     """Objects, the input camera and the image plane (behind the farthest object)."""
-    scene = object_meshes(pred, categories, axes)
+    scene = object_meshes(pred, categories, axes, material=True)
     height, width = image.shape[:2]
     depth = 1.25 * float(pred.verts[..., 2].max()) if len(pred) else 1.0
     scene.add_geometry(
@@ -120,3 +136,37 @@ def prediction_scene(
     pose[:3, :3] = axes_matrix(axes) @ opencv_to_opengl_camera()[:3, :3].numpy()  # glTF camera frame -> written frame
     scene.camera_transform = pose
     return scene
+
+
+def camera_extras(K: np.ndarray, width: int, height: int) -> dict[str, Any]:
+    """What glTF's camera cannot say: the full K (off-centre principal point, skew) and the image size."""
+    return {"K": [[float(v) for v in row] for row in np.asarray(K, dtype=np.float64)], "image_size": [width, height]}
+
+
+def scene_glb(scene: trimesh.Scene, K: np.ndarray, width: int, height: int) -> bytes:
+    """The scene as GLB bytes, with what trimesh does not write: ``camera_extras`` on the camera, and
+    the image plane's material unlit (``KHR_materials_unlit``), so viewers show the image's own
+    colours rather than shading it by their lights."""
+    return finish_glb(scene.export(file_type="glb"), camera_extras(K, width, height))
+
+
+def finish_glb(glb: bytes, extras: dict[str, Any]) -> bytes:
+    """``extras`` added to the first camera, the ``IMAGE_NODE`` mesh's materials made unlit: the JSON
+    chunk is rewritten, the binary one kept."""
+    magic, version, _ = struct.unpack_from("<4sII", glb, 0)
+    json_length, json_type = struct.unpack_from("<I4s", glb, 12)
+    if magic != b"glTF" or version != 2 or json_type != b"JSON":
+        raise ValueError("not a glTF 2.0 binary with its JSON chunk first")
+    tree = json.loads(glb[20 : 20 + json_length])
+    tree["cameras"][0].setdefault("extras", {}).update(extras)
+    for node in tree["nodes"]:
+        if node.get("name") == IMAGE_NODE and "mesh" in node:
+            for primitive in tree["meshes"][node["mesh"]]["primitives"]:
+                material = tree["materials"][primitive["material"]]
+                material.setdefault("extensions", {})["KHR_materials_unlit"] = {}
+                tree["extensionsUsed"] = sorted({*tree.get("extensionsUsed", []), "KHR_materials_unlit"})
+    text = json.dumps(tree, separators=(",", ":")).encode()
+    text += b" " * (-len(text) % 4)  # chunks are 4-byte aligned; JSON pads with spaces
+    rest = glb[20 + json_length :]
+    total = 12 + 8 + len(text) + len(rest)
+    return struct.pack("<4sII", b"glTF", 2, total) + struct.pack("<I4s", len(text), b"JSON") + text + rest

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Callable, Sequence
 
@@ -20,13 +20,17 @@ import numpy as np
 import torch
 import trimesh
 
-from usl.data.frames import FrameData
+from data_specs import DATASETS, load_dataset_spec
+from usl.data.frames import CategoryIndex, FrameData
 from usl.evaluation.model import ModelPredictor, load_checkpoint_model
 from usl.evaluation.types import EvalInput
-from usl.inference.gltf_scene import object_meshes, prediction_scene
 from usl.inference.formats import FORMATS
+from usl.inference.gltf_scene import object_meshes, prediction_scene, scene_glb
+from usl.inference.gltf_viewer import viewer_html
+from usl.model.config import ModelConfig
 from usl.vis.visualize import draw_boxes, palette, render_overlay, write_png
-from usl.geometry.cameras import intrinsics_from_fov
+from usl.geometry.cameras import intrinsics_from_fov, scale_intrinsics
+from usl.inference.field_of_view import auto_fov_deg
 from usl.model.outputs import ObjectPredictions
 from usl.errors import UslError
 
@@ -66,11 +70,21 @@ def read_image(path: str | Path) -> np.ndarray:
     return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
 
 
-def camera_for(image: np.ndarray, K: np.ndarray | None, fov_deg: float | None, opencv_k: bool) -> torch.Tensor:
+def camera_for(
+    image: np.ndarray,
+    K: np.ndarray | None,
+    fov_deg: float | str | None,
+    opencv_k: bool = False,
+    path: str | Path | None = None,
+) -> torch.Tensor:
+    """K of ``image``: the given one, or a centred one of horizontal field of view ``fov_deg``
+    (``"auto"``: from the EXIF of the file at ``path``, ``usl.inference.field_of_view``)."""
     height, width = image.shape[:2]
     if K is None:
-        if fov_deg is None or not 0.0 < fov_deg < 180.0:
-            raise UslError(f"need --K or a horizontal --fov in (0, 180) degrees, got {fov_deg}")
+        if fov_deg == "auto":
+            fov_deg = auto_fov_deg(path, width, height)
+        if not isinstance(fov_deg, (int, float)) or not 0.0 < fov_deg < 180.0:
+            raise UslError(f"need K or a horizontal field of view in (0, 180) degrees or 'auto', got {fov_deg!r}")
         return intrinsics_from_fov(math.radians(fov_deg), width, height).float()
     K = K.copy()
     if opencv_k:
@@ -104,42 +118,58 @@ class ImageResult:
     best_score: float | None = None  # highest detection score of all (None: no detection at all)
 
 
-def write_meshes(
-    pred: ObjectPredictions,
-    categories: Sequence[str],
-    image: np.ndarray,
-    K: np.ndarray,
-    stem: Path,
-    formats: Sequence[str],
-    axes: str,
-) -> list[Path]:
-    """GLB and HTML hold the whole scene (objects, camera, image plane); OBJ and PLY the objects only."""
-    written = []
-    for fmt in formats:
-        path = stem.with_suffix(f".{fmt}")
-        if fmt in ("glb", "html"):
-            scene = prediction_scene(pred, categories, image, K, axes)
-            if fmt == "glb":
-                scene.export(path)
-            else:
-                from trimesh.viewer.notebook import scene_to_html  # three.js bundled into the page: no network
-
-                path.write_text(scene_to_html(scene))
-        elif fmt == "ply":  # a PLY holds one mesh: all objects merged, each with its own vertex colour
-            trimesh.util.concatenate(list(object_meshes(pred, categories, axes).dump())).export(path)
+def write_scene_file(
+    pred: ObjectPredictions, categories: CategoryIndex, image: np.ndarray, K: np.ndarray, path: Path, axes: str
+) -> Path:
+    """One file, its format from the suffix. GLB and HTML hold the whole scene (objects, camera, image
+    plane) and keep each object a node with its category and score. OBJ gives each object its own
+    ``o`` group and material (``<stem>.mtl`` beside it), which is what trimesh splits a file by. PLY
+    holds one mesh: the objects merged, each with its own vertex colour."""
+    fmt = path.suffix.lower().lstrip(".")
+    if fmt not in FORMATS:
+        raise UslError(f"{path}: unknown scene format {fmt!r}; choose from {', '.join(FORMATS)}")
+    if fmt in ("glb", "html"):
+        glb = scene_glb(prediction_scene(pred, categories, image, K, axes), K, image.shape[1], image.shape[0])
+        if fmt == "glb":
+            path.write_bytes(glb)
         else:
-            object_meshes(pred, categories, axes).export(path)
-        written.append(path)
-    return written
+            path.write_text(viewer_html(glb, title=path.stem))
+    elif fmt == "ply":
+        trimesh.util.concatenate(list(object_meshes(pred, categories, axes).dump())).export(path)
+    else:
+        scene = object_meshes(pred, categories, axes, material=True)
+        text, files = trimesh.exchange.obj.export_obj(scene, return_texture=True, mtl_name=f"{path.stem}.mtl")
+        path.write_text(text)
+        for name, data in files.items():
+            (path.parent / name).write_bytes(data)
+    return path
+
+
+OVERLAY_MIN_SIZE = 512  # overlays are drawn at least this large on the short side, so labels leave room
+
+
+def overlay_picture(pred: ObjectPredictions, categories: CategoryIndex, image: np.ndarray, K: torch.Tensor):
+    """The meshes rendered over the image with boxes, names and scores, upscaled to ``OVERLAY_MIN_SIZE``."""
+    scale = max(1.0, OVERLAY_MIN_SIZE / min(image.shape[:2]))
+    if scale > 1.0:
+        size = (round(image.shape[1] * scale), round(image.shape[0] * scale))
+        sx, sy = size[0] / image.shape[1], size[1] / image.shape[0]
+        image = cv2.resize(image, size, interpolation=cv2.INTER_CUBIC)
+        K = scale_intrinsics(K.double(), sx, sy).float()
+        pred = replace(pred, boxes=pred.boxes * torch.tensor([sx, sy, sx, sy]))
+    colors = palette(len(pred))
+    overlay = render_overlay(image, pred.verts, pred.faces, K, colors)
+    texts = [f"{categories.names[int(l)]} {float(s):.2f}" for l, s in zip(pred.labels.tolist(), pred.scores.tolist())]
+    return draw_boxes(overlay, pred.boxes, texts, colors)
 
 
 def predict_images(
     detect: Detect,
     image_paths: Sequence[str | Path],
     out_dir: str | Path,
-    categories: Sequence[str],
+    categories: CategoryIndex,
     K: np.ndarray | None = None,
-    fov_deg: float | None = None,
+    fov_deg: float | str | None = None,
     formats: Sequence[str] = ("glb",),
     score_threshold: float = 0.5,
     axes: str = "gltf",
@@ -157,22 +187,38 @@ def predict_images(
     for path, image in images:
         stem = path.stem if path.stem not in stems else f"{path.stem}_{len(stems)}"
         stems.add(stem)
-        frame = image_frame(image, camera_for(image, K, fov_deg, opencv_k), stem)
+        frame = image_frame(image, camera_for(image, K, fov_deg, opencv_k, path), stem)
         pred = detect(frame).to("cpu")
         best = float(pred.scores.max()) if len(pred) else None
         pred = pred.select(pred.scores >= score_threshold)
         K_image = frame.K.double().numpy()
-        files = write_meshes(pred, categories, image, K_image, out / stem, formats, axes) if len(pred) else []
-        colors = palette(len(pred))
-        overlay = render_overlay(image, pred.verts, pred.faces, frame.K, colors)
-        texts = [f"{categories[int(l)]} {float(s):.2f}" for l, s in zip(pred.labels.tolist(), pred.scores.tolist())]
-        files.append(write_png(out / f"{stem}_overlay.png", draw_boxes(overlay, pred.boxes, texts, colors)))
+        files = (
+            [write_scene_file(pred, categories, image, K_image, out / f"{stem}.{f}", axes) for f in formats]
+            if len(pred)
+            else []
+        )
+        files.append(write_png(out / f"{stem}_overlay.png", overlay_picture(pred, categories, image, frame.K)))
         written[str(path)] = ImageResult(files, len(pred), best)
     return written
 
 
-def model_detector(checkpoint: str | Path, device: str) -> tuple[Detect, list[str]]:
-    """The checkpoint's model in detection mode, and its category names."""
+def model_detector(checkpoint: str | Path, device: str) -> tuple[Detect, CategoryIndex]:
+    """The checkpoint's model in detection mode, and its categories (names and dataset ids)."""
     model, config = load_checkpoint_model(checkpoint, device)
     predictor = ModelPredictor(model, int(config.data.max_size), "detections")
-    return (lambda frame: predictor([EvalInput(frame, {})])[0]), list(config.model.categories)
+    return (lambda frame: predictor([EvalInput(frame, {})])[0]), model_categories(config.model)
+
+
+def model_categories(model_config: ModelConfig) -> CategoryIndex:
+    """Names and dataset ids of the model's classes. Checkpoints written before ``model.category_ids``
+    existed take the ids of the dataset spec with the same category names."""
+    names = list(model_config.categories)
+    ids = list(model_config.category_ids)
+    if not ids:
+        specs = [load_dataset_spec(name)["categories"] for name in DATASETS]
+        ids = next(([int(c["id"]) for c in spec] for spec in specs if [c["name"] for c in spec] == names), [])
+    if len(ids) != len(names):
+        raise UslError(
+            f"the checkpoint's model.category_ids {ids} do not match its {len(names)} model.categories {names}"
+        )
+    return CategoryIndex([{"id": i, "name": n} for i, n in zip(ids, names)])

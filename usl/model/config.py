@@ -95,6 +95,7 @@ class ModelConfig:
     shape: ShapeHeadConfig = field(default_factory=ShapeHeadConfig)
     # Filled from the records manifest when empty (categories in data_specs order, layout ranges).
     categories: tuple[str, ...] = ()
+    category_ids: tuple[int, ...] = ()  # the dataset's id of each category (what records, COCO and GLB use)
     layout_range: LayoutRange = field(default_factory=LayoutRange)
     # Local pretrained checkpoint for the whole detector (never downloaded): a torchvision
     # maskrcnn_resnet50_fpn or resnet50 state dict, or a detectron2 model zoo / MSRA R-50 .pkl

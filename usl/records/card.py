@@ -7,12 +7,14 @@ table; the body says what the dataset is, how to load it, and documents every fi
 
 from __future__ import annotations
 
+import json
+import shlex
 from pathlib import Path
 from typing import Any
 
 import yaml
 
-from data_specs import load_schema_spec
+from data_specs import load_dataset_spec, load_schema_spec
 
 from .atomic import write_text_atomic
 from usl.errors import UslError
@@ -49,22 +51,61 @@ def _type_name(spec: Any) -> str:
 
 
 def _field_lines(fields: list[dict[str, Any]], prefix: str = "") -> list[str]:
-    """Markdown table rows for the fields, nested struct fields as ``parent.child``."""
+    """Markdown table rows for the fields, nested struct fields as ``parent.child``; types in code
+    spans, where ``<struct>`` is text and not an HTML tag the page would swallow."""
     lines = []
     for field in fields:
         type_ = field["type"]
         optional = " (may be null)" if field.get("nullable") else ""
-        lines.append(f"| `{prefix}{field['name']}` | {_type_name(type_)} | {field.get('doc', '')}{optional} |")
+        doc = field.get("doc", "").replace("|", "\\|")
+        lines.append(f"| `{prefix}{field['name']}` | `{_type_name(type_)}` | {doc}{optional} |")
         inner = type_.get("list", type_) if isinstance(type_, dict) else None
         if isinstance(inner, dict) and "struct" in inner:
             lines += _field_lines(inner["struct"], f"{prefix}{field['name']}.")
     return lines
 
 
+def dataset_license(name: str) -> dict[str, str]:
+    """Hugging Face ``license`` keys of a dataset usl knows (its data spec's ``license``); ``other`` else."""
+    try:
+        license_ = load_dataset_spec(name).get("license")
+    except ValueError:  # a dataset of someone else's spec
+        license_ = None
+    return dict(license_) if license_ else {"license": "other", "license_name": "unknown"}
+
+
+def _provenance(creator: dict[str, Any]) -> list[str]:
+    """How the dataset was made: the command line, its seed, every argument."""
+    command = " ".join([creator.get("command", "?"), *map(shlex.quote, creator.get("argv", []))])
+    arguments = creator.get("arguments", {})
+    lines = [
+        "## Provenance",
+        "",
+        f"Made with usl {creator.get('usl_version', '?')} by",
+        "",
+        "```bash",
+        command,
+        "```",
+        "",
+    ]
+    if "seed" in arguments:
+        lines += [f"Seed: {arguments['seed']} (it fixes the splits and every random choice of the build).", ""]
+    if arguments:
+        lines += [
+            "| argument | value |",
+            "|---|---|",
+            *(f"| `{k}` | `{json.dumps(v)}` |" for k, v in arguments.items()),
+            "",
+        ]
+    return lines + ["Skipped items and the shards' checksums are in `manifest.json`.", ""]
+
+
 def dataset_card(manifest: dict[str, Any]) -> str:
     spec = load_schema_spec(SCHEMA_VERSION)
     front = {
         "pretty_name": manifest["name"],
+        **dataset_license(manifest["name"]),
+        "task_categories": ["image-segmentation", "object-detection", "image-to-3d"],
         "tags": ["usl", "multi-view", "instance-segmentation", "3d"],
         "configs": card_configs(manifest),
     }
@@ -87,7 +128,11 @@ def dataset_card(manifest: dict[str, Any]) -> str:
             for split, e in manifest["splits"].items()
         ),
         "",
-        "Categories: " + ", ".join(f"{c['id']} {c['name']}" for c in manifest["categories"]) + ".",
+        "Categories (`category_id`, the same ids in `manifest.json`, the COCO export and usl's predictions):",
+        "",
+        "| id | name |",
+        "|---|---|",
+        *(f"| {c['id']} | {c['name']} |" for c in manifest["categories"]),
         "",
         "## Loading",
         "",
@@ -116,15 +161,8 @@ def dataset_card(manifest: dict[str, Any]) -> str:
             *_field_lines(table_spec["fields"]),
             "",
         ]
-    creator = manifest.get("creator", {})
-    if creator:
-        lines += [
-            "## Provenance",
-            "",
-            f"Made by `{creator.get('command', '?')}` (usl {creator.get('usl_version', '?')}); "
-            "arguments and skipped items are in `manifest.json`.",
-            "",
-        ]
+    if manifest.get("creator"):
+        lines += _provenance(manifest["creator"])
     return "\n".join(lines)
 
 

@@ -25,9 +25,8 @@ _SCALARS = {
     "int64": pa.int64(),
     "float32": pa.float32(),
     "float64": pa.float64(),
-    # Hugging Face's Image and ClassLabel features, with the Arrow types `datasets` gives them.
+    # Hugging Face's Image feature, with the Arrow type `datasets` gives it.
     "image": pa.struct([pa.field("bytes", pa.binary()), pa.field("path", pa.string())]),
-    "class_label": pa.int64(),
 }
 
 
@@ -69,39 +68,46 @@ def shard_file(table: str, split: str, index: int) -> str:
     return load_schema_spec(SCHEMA_VERSION)["shard_path"].format(table=table, split=split, index=index)
 
 
-def class_label_names(categories: list[dict[str, Any]]) -> list[str]:
-    """ClassLabel names indexed by category id; ids no category uses are named ``__unused_<id>__``."""
-    by_id = {int(c["id"]): str(c["name"]) for c in categories}
-    return [by_id.get(i, f"__unused_{i}__") for i in range(max(by_id, default=-1) + 1)]
-
-
-def _hf_feature(spec: Any, names: list[str]) -> Any:
+def _hf_feature(spec: Any) -> Any:
     """A field type as Hugging Face ``Features.to_dict`` writes it, in the forms every datasets
     release since 2.x reads: ``Sequence`` with ``length`` for fixed lists, ``[feature]`` for lists."""
     if spec == "image":
         return {"_type": "Image"}
-    if spec == "class_label":
-        return {"names": names, "_type": "ClassLabel"}
     if isinstance(spec, str):
         return {"dtype": spec, "_type": "Value"}
     if "list" in spec:
-        item = _hf_feature(spec["list"], names)
+        item = _hf_feature(spec["list"])
         return {"feature": item, "length": spec["size"], "_type": "Sequence"} if "size" in spec else [item]
-    return {f["name"]: _hf_feature(f["type"], names) for f in spec["struct"]}
+    return {f["name"]: _hf_feature(f["type"]) for f in spec["struct"]}
 
 
-def hf_features(table: str, categories: list[dict[str, Any]]) -> dict[str, Any]:
-    """Hugging Face features of a v2 table: image decodes to PIL, category ids to class names."""
-    names = class_label_names(categories)
-    return {
-        f["name"]: _hf_feature(f["type"], names) for f in load_schema_spec(SCHEMA_VERSION)["tables"][table]["fields"]
-    }
+def hf_features(table: str) -> dict[str, Any]:
+    """Hugging Face features of a v2 table: images decode to PIL; ``category_id`` stays the dataset's id."""
+    return {f["name"]: _hf_feature(f["type"]) for f in load_schema_spec(SCHEMA_VERSION)["tables"][table]["fields"]}
+
+
+def legacy_hf_features(table: str, categories: list[dict[str, Any]]) -> dict[str, Any]:
+    """The features earlier v2 builds wrote: ``category_id`` a ClassLabel indexed by the dataset's id,
+    ``__unused_<id>__`` at the ids no category has. Same Arrow data; kept so those datasets validate."""
+    by_id = {int(c["id"]): str(c["name"]) for c in categories}
+    names = [by_id.get(i, f"__unused_{i}__") for i in range(max(by_id, default=-1) + 1)]
+
+    def swap(feature: Any, name: str = "") -> Any:
+        if name == "category_id":
+            return {"names": names, "_type": "ClassLabel"}
+        if isinstance(feature, list):
+            return [swap(feature[0])]
+        if isinstance(feature, dict) and "_type" not in feature:
+            return {k: swap(v, k) for k, v in feature.items()}
+        return feature
+
+    return swap(hf_features(table))
 
 
 def dataset_schema(table: str, metadata: dict[str, Any]) -> pa.Schema:
     """The schema a shard of ``table`` is written with: dataset metadata under ``usl`` (name, schema
     version, categories, layout) and the Hugging Face features under ``huggingface``."""
-    features = {"info": {"features": hf_features(table, metadata["categories"])}}
+    features = {"info": {"features": hf_features(table)}}
     return table_schema(table).with_metadata(
         {
             METADATA_KEY: json.dumps(metadata, sort_keys=True).encode(),

@@ -20,7 +20,15 @@ from .card import CARD, card_configs
 from .encode import decode_image, decode_mask, encode_mask
 from usl.errors import UslError, one_line
 from .manifest import load_manifest
-from .schema import HF_METADATA_KEY, SCHEMA_VERSION, dataset_schema, read_metadata, required_fields, table_schema
+from .schema import (
+    HF_METADATA_KEY,
+    SCHEMA_VERSION,
+    hf_features,
+    legacy_hf_features,
+    read_metadata,
+    required_fields,
+    table_schema,
+)
 from .shards import verify_file
 from .upgrade import upgrade_table
 
@@ -77,7 +85,8 @@ def _open_table(path: Path, table: str) -> tuple[pq.ParquetFile, int, list[str]]
         return file, version, [f"{path}: Arrow schema differs from the {table} schema v{version}"]
     if version == SCHEMA_VERSION:
         stored = json.loads((file.schema_arrow.metadata or {}).get(HF_METADATA_KEY, b"null"))
-        if stored != json.loads(dataset_schema(table, meta).metadata[HF_METADATA_KEY]):
+        accepted = (hf_features(table), legacy_hf_features(table, meta["categories"]))
+        if not isinstance(stored, dict) or stored.get("info", {}).get("features") not in accepted:
             return file, version, [f"{path}: '{HF_METADATA_KEY.decode()}' features metadata missing or stale"]
     return file, version, []
 

@@ -1,4 +1,4 @@
-"""Session fixtures: the Hypersim inputs of ``hypersim_inputs`` written once, and conversions of them."""
+"""Fixtures shared by the whole test run: the Hypersim inputs of ``hypersim_inputs`` written once, and conversions of them."""
 
 from pathlib import Path
 
