@@ -28,9 +28,8 @@ from usl.model.segmenter import SegmenterConfig, detector_for_weights
 def tiny_point_rend(**changes) -> DetectorConfig:
     cfg = DetectorConfig.tiny()
     cfg.roi_heads.name = "point_rend"
-    cfg.roi_heads.point_rend = dataclasses.replace(
-        cfg.roi_heads.point_rend, conv_dim=16, fc_dim=32, point_fc_dim=16, **changes
-    )
+    sizes = {"conv_dim": 32, "fc_dim": 32, "point_fc_dim": 16, **changes}
+    cfg.roi_heads.point_rend = dataclasses.replace(cfg.roi_heads.point_rend, **sizes)
     return cfg
 
 
@@ -225,3 +224,8 @@ def test_point_rend_weights_do_not_load_into_a_mask_rcnn(tmp_path):
     cfg.backbone.resnet.stride_in_1x1 = True
     with pytest.raises(WeightsError, match=r"mask_head\.(point|coarse)_head.*which this model does not have"):
         init_detector(MaskRCNN(80, cfg), tmp_path / "pointrend.pkl")
+
+
+def test_a_coarse_head_narrower_than_its_features_is_refused():
+    with pytest.raises(ValueError, match="conv_dim"):
+        MaskRCNN(3, tiny_point_rend(conv_dim=16))

@@ -89,6 +89,8 @@ class CoarseMaskHead(nn.Module):
 
     def __init__(self, channels: int, num_classes: int, cfg: PointRendConfig):
         super().__init__()
+        if channels > cfg.conv_dim:  # detectron2 would put a 1x1 reduction conv first: another layout
+            raise ValueError(f"PointRend's coarse head needs conv_dim >= the {channels} feature channels")
         self.num_classes = num_classes
         self.resolution = cfg.coarse_resolution
         self.conv = nn.Conv2d(channels, cfg.conv_dim, kernel_size=2, stride=2)
