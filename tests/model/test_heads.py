@@ -4,6 +4,7 @@ import cv2
 import numpy as np
 import pytest
 import torch
+import torch.nn.functional as F
 
 from tests.model.detection_oracles import roi_align_loop
 from usl.model.detector import (
@@ -15,6 +16,7 @@ from usl.model.detector import (
     mask_targets,
     paste_masks_in_image,
     subsample_labels,
+    subsample_labels_dense,
 )
 
 
@@ -68,6 +70,19 @@ def test_subsample_labels_respects_budget_and_fraction():
     assert len(positive) == 1 and len(negative) == 2
 
 
+def test_dense_subsampling_draws_the_same_sizes_uniformly_for_every_row():
+    torch.manual_seed(0)
+    labels = torch.stack([torch.tensor([1] * 10 + [0] * 100 + [-1] * 5), torch.tensor([1, 0, 0] + [-1] * 112)])
+    counts = torch.zeros(labels.shape)
+    for _ in range(400):
+        sampled = subsample_labels_dense(labels, 16, 0.25)
+        assert ((sampled == 1) <= (labels == 1)).all() and ((sampled == 0) <= (labels == 0)).all()
+        assert (sampled == 1).sum(1).tolist() == [4, 1] and (sampled == 0).sum(1).tolist() == [12, 2]
+        counts += sampled >= 0
+    # every foreground anchor of row 0 is drawn 4/10 of the time, every background one 12/100
+    assert (counts[0, :10] / 400 - 0.4).abs().max() < 0.1 and (counts[0, 10:110] / 400 - 0.12).abs().max() < 0.07
+
+
 def test_paste_masks_matches_opencv_resize_inside_the_box():
     generator = torch.Generator().manual_seed(1)
     mask = torch.rand(28, 28, generator=generator)
@@ -111,3 +126,69 @@ def test_image_list_pads_to_divisibility():
     assert images.tensor[:, :, 50:].abs().sum() == 0
     with pytest.raises(ValueError, match="does not fit"):
         ImageList.from_tensor(torch.ones(1, 3, 8, 8), [(9, 8)])
+
+
+def test_rpn_losses_weighted_over_all_anchors_match_the_sampled_anchors_alone(monkeypatch):
+    """The RPN's losses sum over every anchor weighted by its label; the oracle indexes the
+    sampled anchors out first (the former implementation), for values and gradients."""
+    from usl.model.backbone import ShapeSpec
+    from usl.model.detector.config import DetectorConfig
+    from usl.model.detector.rpn import RPN
+    from usl.model.ops import Box2BoxTransform
+
+    cfg = DetectorConfig.tiny().rpn
+    rpn = RPN(cfg, {name: ShapeSpec(channels=8, stride=2 ** (i + 2)) for i, name in enumerate(cfg.in_features)})
+    generator = torch.Generator().manual_seed(0)
+    anchors = torch.rand(50, 2, generator=generator) * 60
+    anchors = torch.cat([anchors, anchors + 4 + torch.rand(50, 2, generator=generator) * 30], 1)
+    labels = torch.randint(-1, 2, (2, 50), generator=generator)
+    matched = anchors + torch.randn(2, 50, 4, generator=generator)
+    monkeypatch.setattr(rpn, "label_anchors", lambda anchors, targets: (labels, matched))
+    logits = torch.randn(2, 50, generator=generator, requires_grad=True)
+    deltas = torch.randn(2, 50, 4, generator=generator, requires_grad=True)
+    new = rpn.losses(anchors, logits, deltas, [None, None])
+    new_grads = torch.autograd.grad(sum(new.values()), [logits, deltas])
+    positive, valid = labels == 1, labels != -1
+    target = Box2BoxTransform(cfg.bbox_reg_weights).get_deltas(anchors.expand_as(matched)[positive], matched[positive])
+    weight = cfg.loss_weight / (cfg.batch_size_per_image * 2)
+    old = {
+        "loss_rpn_cls": F.binary_cross_entropy_with_logits(logits[valid], labels[valid].float(), reduction="sum"),
+        "loss_rpn_loc": F.smooth_l1_loss(deltas[positive], target, beta=cfg.smooth_l1_beta, reduction="sum"),
+    }
+    old = {k: v * weight for k, v in old.items()}
+    old_grads = torch.autograd.grad(sum(old.values()), [logits, deltas])
+    for key in old:
+        torch.testing.assert_close(new[key], old[key])
+    for a, b in zip(new_grads, old_grads):
+        torch.testing.assert_close(a, b)
+
+
+def test_rpn_nms_of_all_images_at_once_matches_one_image_at_a_time():
+    """The former per-image loop (clip, drop empty, NMS per level, top-k) is the oracle."""
+    from usl.model.backbone import ShapeSpec
+    from usl.model.detector.config import DetectorConfig
+    from usl.model.detector.rpn import RPN
+    from usl.model.ops import batched_nms, clip_boxes, nonempty_boxes
+
+    cfg = DetectorConfig.tiny().rpn
+    rpn = RPN(cfg, {name: ShapeSpec(channels=8, stride=2 ** (i + 2)) for i, name in enumerate(cfg.in_features)})
+    generator = torch.Generator().manual_seed(2)
+    num_levels, per_level = len(cfg.in_features), 40
+    corner = torch.rand(3, num_levels * per_level, 2, generator=generator) * 90 - 10
+    boxes = torch.cat([corner, corner + torch.rand(3, num_levels * per_level, 2, generator=generator) * 40], 2)
+    boxes[0, 3] = float("nan")
+    boxes[1, 5, 2:] = boxes[1, 5, :2]  # empty
+    scores = torch.randn(3, num_levels * per_level, generator=generator).round(decimals=1)  # ties
+    scores[2, 7] = float("-inf")
+    levels = torch.arange(num_levels).repeat_interleave(per_level)
+    sizes = [(64, 80), (48, 64), (64, 64)]
+    new = rpn._nms_per_image(boxes, scores, levels, sizes, post_topk=25)
+    for image, (image_boxes, image_scores, size) in enumerate(zip(boxes, scores, sizes)):
+        image_boxes = clip_boxes(image_boxes, size)
+        keep = nonempty_boxes(image_boxes, cfg.min_box_size) & torch.isfinite(image_scores)
+        keep &= torch.isfinite(image_boxes).all(dim=1)
+        image_boxes, image_scores, image_levels = image_boxes[keep], image_scores[keep], levels[keep]
+        kept = batched_nms(image_boxes, image_scores, image_levels, cfg.nms_thresh)[:25]
+        assert torch.equal(new[image].proposal_boxes, image_boxes[kept])
+        assert torch.equal(new[image].objectness_logits, image_scores[kept])
+        assert new[image].image_size == size

@@ -4,6 +4,7 @@ import pytest
 import torch
 
 from tests.model.detection_oracles import roi_align_loop, torchvision_ops
+from usl.model.detector import MultiScaleRoIAlign, assign_boxes_to_levels
 from usl.model.ops import RoIAlign, autocast_off, convert_boxes_to_rois, roi_align
 
 TV = torchvision_ops()
@@ -117,3 +118,31 @@ def test_autocast_off_disables_it_and_passes_devices_without_it():
         assert torch.is_autocast_enabled("cpu")
     with autocast_off("meta"):  # torch.autocast("meta", enabled=False) raises
         assert torch.empty(2, device="meta").is_meta
+
+
+def test_fpn_levels_in_one_pass_match_one_call_per_level():
+    """MultiScaleRoIAlign pools all levels at once; the former loop (one roi_align per level, its
+    RoIs found with nonzero) is the oracle, for values and for each level's gradient."""
+    generator = torch.Generator().manual_seed(5)
+    pooler = MultiScaleRoIAlign(["p2", "p3", "p4"], [4, 8, 16], 5, sampling_ratio=0, canonical_box_size=32)
+    shapes = {"p2": (24, 32), "p3": (12, 16), "p4": (6, 8)}
+    maps = {k: torch.randn(2, 3, h, w, generator=generator, dtype=torch.float64) for k, (h, w) in shapes.items()}
+    boxes = [random_rois(generator, 12, 1, 128)[:, 1:].abs() for _ in range(2)]
+    rois = convert_boxes_to_rois(boxes, maps["p2"])
+    level = assign_boxes_to_levels(rois[:, 1:], 2, 4, 32, 4)
+    assert len(level.unique()) == 3  # every level has RoIs
+    results = []
+    for one_pass in (True, False):
+        leaves = {k: v.clone().requires_grad_(True) for k, v in maps.items()}
+        if one_pass:
+            pooled = pooler(leaves, boxes)
+        else:
+            pooled = torch.zeros(len(rois), 3, 5, 5, dtype=torch.float64)
+            for index, (name, stride) in enumerate(zip(["p2", "p3", "p4"], [4, 8, 16])):
+                rows = torch.nonzero(level == index).squeeze(1)
+                pooled[rows] = roi_align(leaves[name], rois[rows], 5, 1.0 / stride, 0, aligned=True)
+        (pooled * torch.linspace(-1, 1, pooled.numel(), dtype=torch.float64).view_as(pooled)).sum().backward()
+        results.append((pooled.detach(), [leaves[k].grad for k in shapes]))
+    torch.testing.assert_close(results[0][0], results[1][0], rtol=0, atol=1e-12)
+    for new, old in zip(results[0][1], results[1][1]):
+        torch.testing.assert_close(new, old, rtol=0, atol=1e-12)

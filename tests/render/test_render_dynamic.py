@@ -6,9 +6,10 @@ import torch
 import trimesh
 import torch.nn.functional as F
 
+from tests.render.per_pair_oracle import render_dynamic_per_pair
 from tests.render.render_oracle import intrinsics, random_scene, render_pyrender
 from usl.geometry.cameras import scale_intrinsics
-from usl.render import SoftRasterSettings, render_dynamic, resample_mask_area
+from usl.render import SoftRasterSettings, render_dynamic, resample_masks_area
 
 SHARP = SoftRasterSettings(sigma=1e-10, blur_radius=1e-8, faces_per_pixel=None)
 
@@ -45,18 +46,44 @@ def projected_box(verts, K):
 
 def test_exact_area_resampling_matches_overlap_oracle_and_average_pooling():
     rng = np.random.default_rng(0)
-    mask = rng.random((37, 53)) > 0.6
-    for window in (
-        [3.3, 2.7, 30.1, 29.5],
-        [-5.5, 10.25, 60.0, 75.75],
-        [10.0, 12.0, 11.5, 13.5],
-        [0.0, 0.0, 53.0, 53.0],
-    ):
-        got = resample_mask_area(torch.as_tensor(mask), window, 16).numpy()
-        np.testing.assert_allclose(got, area_oracle(mask, window, 16), atol=1e-9)
+    masks = rng.random((4, 37, 53)) > 0.6
+    windows = [[3.3, 2.7, 30.1, 29.5], [-5.5, 10.25, 60.0, 75.75], [10.0, 12.0, 11.5, 13.5], [0.0, 0.0, 53.0, 53.0]]
+    got = resample_masks_area(
+        torch.as_tensor(masks), torch.tensor(windows, dtype=torch.float64), 16
+    ).numpy()  # all windows at once
+    for mask, window, coverage in zip(masks, windows, got):
+        np.testing.assert_allclose(coverage, area_oracle(mask, window, 16), atol=1e-9)
     # Integer-aligned windows whose side is a multiple of R are plain average pooling.
-    pooled = F.avg_pool2d(torch.as_tensor(mask[4:36, 8:40], dtype=torch.float64)[None], 4)[0]
-    torch.testing.assert_close(resample_mask_area(torch.as_tensor(mask), [8, 4, 40, 36], 8), pooled)
+    pooled = F.avg_pool2d(torch.as_tensor(masks[0, 4:36, 8:40], dtype=torch.float64)[None], 4)
+    window = torch.tensor([[8.0, 4.0, 40.0, 36.0]])
+    torch.testing.assert_close(resample_masks_area(torch.as_tensor(masks[:1]), window, 8), pooled)
+
+
+def test_batched_render_matches_the_per_pair_oracle_in_values_and_gradients():
+    """All pairs at once (views of two sizes, padded; occluder masks) against the former per-pair loop."""
+    rng = np.random.default_rng(3)
+    objects = random_scene(rng, 4)
+    sizes = [(64, 80), (64, 80), (48, 72), (48, 72)]
+    Ks = torch.stack([torch.as_tensor(intrinsics(h, w, (0.02, -0.01))) for h, w in sizes])
+    masks = [
+        torch.as_tensor(render_pyrender([m], np.eye(4), K.numpy(), h, w)[2][0])
+        for m, K, (h, w) in zip(objects, Ks, sizes)
+    ]
+    masks[1] = torch.roll(masks[1], shifts=(3, -5), dims=(0, 1))  # a truth that differs from the mesh
+    occluders = [torch.as_tensor(rng.random((h, w)) > 0.9) for h, w in sizes]
+    verts, faces, window = pack([(m.vertices, m.faces) for m in objects])
+    results = []
+    for render in (render_dynamic, render_dynamic_per_pair):
+        v = verts.clone().requires_grad_(True)
+        out = render(v, faces, window, Ks, masks, resolution=24, ignore_masks=occluders)
+        bce = F.binary_cross_entropy(out.soft.clamp(1e-6, 1 - 1e-6), out.target, reduction="none")
+        (bce * out.valid).sum().backward()
+        results.append((out, v.grad))
+    (new, new_grad), (old, old_grad) = results
+    for name in ("soft", "target", "valid", "windows", "K_window"):
+        torch.testing.assert_close(getattr(new, name), getattr(old, name), atol=1e-9, rtol=1e-9)
+    torch.testing.assert_close(new_grad, old_grad, atol=1e-9, rtol=1e-9)
+    assert new.valid.float().mean() < 1.0  # the occluders did hide cells
 
 
 def _predicted_and_true_objects(rng, height, width):

@@ -5,6 +5,7 @@ rank r takes every world_size-th item of it (``usl.records.partition``), so rank
 item. The tail that does not fill a batch on every rank is left out of that epoch (a later
 epoch's permutation covers it), which keeps the number of steps equal on all ranks, as DDP needs.
 """
+
 from __future__ import annotations
 
 from typing import Iterator
@@ -19,7 +20,9 @@ from .samples import collate_samples
 
 
 class ShardedBatchSampler(Sampler[list[SampleKey]]):
-    def __init__(self, num_items: int, batch_size: int, rank: int = 0, world_size: int = 1, seed: int = 0, shuffle: bool = True):
+    def __init__(
+        self, num_items: int, batch_size: int, rank: int = 0, world_size: int = 1, seed: int = 0, shuffle: bool = True
+    ):
         if num_items // world_size < batch_size:
             raise ValueError(
                 f"{num_items} items cannot fill one batch of {batch_size} on each of {world_size} process(es)"
@@ -54,12 +57,16 @@ def _worker_init(_: int) -> None:
     torch.set_num_threads(1)  # workers decode PNGs and RLE; keep cores for the main process
 
 
-def build_train_loader(dataset: MultiViewDataset, sampler: ShardedBatchSampler, num_workers: int) -> DataLoader:
+def build_train_loader(
+    dataset: MultiViewDataset, sampler: ShardedBatchSampler, num_workers: int, pin_memory: bool = False
+) -> DataLoader:
+    """``pin_memory`` (for a CUDA run): batches arrive page-locked, so their copy to the device overlaps."""
     return DataLoader(
         dataset,
         batch_sampler=sampler,
         num_workers=num_workers,
         collate_fn=collate_samples,
+        pin_memory=pin_memory,
         worker_init_fn=_worker_init if num_workers else None,
         # Its own generator: creating an iterator must not draw from the global RNG, or a resumed
         # run (new iterator mid-epoch) would continue with different random numbers.

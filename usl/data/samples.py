@@ -1,7 +1,9 @@
 """What one training sample is: the input view (model input + detection targets) and the 2D
 ground truth of its objects in M views (the multi-view loss's targets)."""
+
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, fields, replace
 
 import torch
@@ -30,8 +32,15 @@ class TargetView:
     def size(self) -> tuple[int, int]:
         return int(self.masks.shape[-2]), int(self.masks.shape[-1])
 
-    def to(self, device: torch.device | str) -> "TargetView":
-        return replace(self, **{f.name: getattr(self, f.name).to(device) for f in fields(self) if f.name != "view_id"})
+    def to(self, device: torch.device | str, non_blocking: bool = False) -> "TargetView":
+        return self.apply(lambda t: t.to(device, non_blocking=non_blocking))
+
+    def pin_memory(self) -> "TargetView":
+        """Page-locked copies, so ``to(cuda, non_blocking=True)`` overlaps the copy (DataLoader calls it)."""
+        return self.apply(Tensor.pin_memory)
+
+    def apply(self, fn: Callable[[Tensor], Tensor]) -> "TargetView":
+        return replace(self, **{f.name: fn(getattr(self, f.name)) for f in fields(self) if f.name != "view_id"})
 
 
 @dataclass
@@ -50,14 +59,25 @@ class MultiViewSample:
     seed: int
     true_meshes: list[TrueMesh] | None = None
 
-    def to(self, device: torch.device | str) -> "MultiViewSample":
+    def to(self, device: torch.device | str, non_blocking: bool = False) -> "MultiViewSample":
+        return self.apply(lambda t: t.to(device, non_blocking=non_blocking))
+
+    def pin_memory(self) -> "MultiViewSample":
+        """Page-locked copies, so ``to(cuda, non_blocking=True)`` overlaps the copy (DataLoader calls it)."""
+        return self.apply(Tensor.pin_memory)
+
+    def apply(self, fn: Callable[[Tensor], Tensor]) -> "MultiViewSample":
+        """The sample with ``fn`` applied to each of its tensors."""
         frame = replace(
             self.frame,
-            **{f.name: getattr(self.frame, f.name).to(device) for f in fields(self.frame)
-               if isinstance(getattr(self.frame, f.name), Tensor)},
+            **{
+                f.name: fn(getattr(self.frame, f.name))
+                for f in fields(self.frame)
+                if isinstance(getattr(self.frame, f.name), Tensor)
+            },
         )
-        meshes = None if self.true_meshes is None else [m.to(device) for m in self.true_meshes]
-        return MultiViewSample(frame, self.object_rows.to(device), [v.to(device) for v in self.views], self.seed, meshes)
+        meshes = None if self.true_meshes is None else [m.apply(fn) for m in self.true_meshes]
+        return MultiViewSample(frame, fn(self.object_rows), [v.apply(fn) for v in self.views], self.seed, meshes)
 
 
 def collate_samples(samples: list[MultiViewSample]) -> list[MultiViewSample]:

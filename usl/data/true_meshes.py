@@ -3,10 +3,11 @@
 Shared by evaluation (3D metrics, oracle baselines) and by 3D-supervised training
 (``loss.supervision=3d``), so both see exactly the same true shape and layout.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import torch
 
@@ -24,8 +25,8 @@ class TrueMesh:
     verts: Tensor  # (V, 3) float32, metres
     faces: Tensor  # (F, 3) int64
 
-    def to(self, device: torch.device | str) -> TrueMesh:
-        return TrueMesh(self.verts.to(device), self.faces.to(device))
+    def apply(self, fn: Callable[[Tensor], Tensor]) -> TrueMesh:
+        return TrueMesh(fn(self.verts), fn(self.faces))
 
 
 def true_meshes_in_camera(object_rows: Sequence[dict[str, Any]], cam_to_world: Tensor) -> dict[int, TrueMesh]:
@@ -50,6 +51,8 @@ def object_true_meshes(
         mesh = meshes.get(int(instance_id))
         if mesh is None or len(mesh.faces) == 0:
             problem = "no row in the objects table" if mesh is None else "an empty mesh (no faces)"
-            raise UslError(f"{where}: instance {int(instance_id)} has {problem}; loss.supervision=3d needs a true mesh per object")
+            raise UslError(
+                f"{where}: instance {int(instance_id)} has {problem}; loss.supervision=3d needs a true mesh per object"
+            )
         out.append(mesh)
     return out

@@ -7,7 +7,7 @@ import math
 import resource
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Mapping
 
 import torch
 from tqdm import tqdm
@@ -54,30 +54,42 @@ def seed_everything(seed: int, rank: int) -> None:
 
 
 class Meter:
-    """Sums of logged values since the last log line, and the largest value of the keys in
-    ``PEAKS``: a mean over the interval hides the single steps that matter there (after a gradient
-    spike a run's training IoUs can stall, README)."""
+    """The logged values of the steps since the last log line: their means, and the largest value
+    of the keys in ``PEAKS`` (a mean over the interval hides the single steps that matter there:
+    after a gradient spike a run's training IoUs can stall, README).
+
+    Steps hand in 0-d tensors; ``means()`` reads them all from the device at once, so a step never
+    waits for the device to report a number."""
 
     PEAKS = ("grad_norm",)
 
     def __init__(self) -> None:
-        self.sums: dict[str, float] = {}
-        self.counts: dict[str, int] = {}
-        self.peaks: dict[str, float] = {}
+        self.values: dict[str, list[torch.Tensor | float]] = {}
 
-    def add(self, values: dict[str, float]) -> None:
+    def add(self, values: Mapping[str, torch.Tensor | float]) -> None:
         for key, value in values.items():
-            self.sums[key] = self.sums.get(key, 0.0) + value
-            self.counts[key] = self.counts.get(key, 0) + 1
-            if key in self.PEAKS and math.isfinite(value):  # a skipped step's inf/NaN is counted in ``skipped``
-                self.peaks[key] = max(self.peaks.get(key, value), value)
+            self.values.setdefault(key, []).append(value)
 
-    def means(self) -> dict[str, float]:
-        """The interval's means, and ``KEY_max`` for each key in ``PEAKS``."""
-        return {
-            **{k: self.sums[k] / self.counts[k] for k in self.sums},
-            **{f"{k}_max": v for k, v in self.peaks.items()},
-        }
+    def read(self) -> dict[str, list[float]]:
+        """Every value added, as Python numbers (one device read: the tensors are stacked where they are)."""
+        flat = [(k, i, v) for k in self.values for i, v in enumerate(self.values[k])]
+        out = {k: [0.0] * len(v) for k, v in self.values.items()}
+        tensors = [(k, i, v) for k, i, v in flat if isinstance(v, torch.Tensor)]
+        if tensors:
+            numbers = torch.stack([v.detach().reshape(()).to(torch.float64) for _, _, v in tensors]).tolist()
+            for (key, index, _), number in zip(tensors, numbers):
+                out[key][index] = number
+        for key, index, value in flat:
+            if not isinstance(value, torch.Tensor):
+                out[key][index] = float(value)
+        return out
+
+    def means(self, numbers: dict[str, list[float]] | None = None) -> dict[str, float]:
+        """The interval's means, and ``KEY_max`` for each key in ``PEAKS`` over its finite values
+        (a skipped step's inf/NaN is counted in ``skipped``)."""
+        numbers = self.read() if numbers is None else numbers
+        peaks = {f"{k}_max": max(f) for k in self.PEAKS if (f := [v for v in numbers.get(k, []) if math.isfinite(v)])}
+        return {**{k: sum(v) / len(v) for k, v in numbers.items()}, **peaks}
 
 
 class Trainer:
@@ -106,7 +118,9 @@ class Trainer:
         self.sampler = ShardedBatchSampler(
             len(dataset), cfg.train.batch_size, info.rank, info.world_size, cfg.train.seed
         )
-        self.loader = build_train_loader(dataset, self.sampler, cfg.data.num_workers)
+        self.loader = build_train_loader(
+            dataset, self.sampler, cfg.data.num_workers, pin_memory=info.device.type == "cuda"
+        )
         self.iteration, self.epoch, self.batch_in_epoch = 0, 0, 0
         self.skip_guard = SkipGuard(cfg.train.max_skipped_fraction, cfg.train.skip_window)
         if resume is not None:
@@ -162,11 +176,6 @@ class Trainer:
                 for batch in self.loader:
                     data_time = time.perf_counter() - last
                     values = self.step(batch, diagnostics=(self.iteration + 1) % cfg.train.log_every == 0)
-                    if values["skipped"]:
-                        tqdm.write(
-                            f"{COMMAND}: non-finite loss or gradient at iteration {self.iteration + 1}; step skipped"
-                        )
-                    self.skip_guard.update(values["skipped"], self.iteration + 1)
                     self.iteration += 1
                     self.batch_in_epoch += 1
                     now = time.perf_counter()
@@ -193,15 +202,22 @@ class Trainer:
 
     def write_log(self, meter: Meter, bar: tqdm) -> None:
         """One CSV row: means over the interval's steps, averaged over ranks (keys a rank lacks,
-        e.g. ``stat/z`` without objects, average over the ranks that have them)."""
-        gathered = all_gather_objects(meter.means())
+        e.g. ``stat/z`` without objects, average over the ranks that have them). The interval's
+        skipped steps are reported and counted by the skip guard here, where the values are read."""
+        numbers = meter.read()
+        first = self.iteration - len(numbers["skipped"]) + 1
+        for offset, skipped in enumerate(numbers["skipped"]):
+            if skipped:
+                tqdm.write(f"{COMMAND}: non-finite loss or gradient at iteration {first + offset}; step skipped")
+            self.skip_guard.update(bool(skipped), first + offset)
+        gathered = all_gather_objects(meter.means(numbers))
         if not self.info.is_main:
             return
         keys = sorted({k for values in gathered for k in values})
         row: dict[str, Any] = {
             k: sum(v[k] for v in gathered if k in v) / sum(1 for v in gathered if k in v) for k in keys
         }
-        row["skipped"] = round(row["skipped"] * meter.counts["skipped"])  # every rank skips together
+        row["skipped"] = round(row["skipped"] * len(numbers["skipped"]))  # every rank skips together
         row.update(epoch=self.epoch, lr=self.step.optimizer.param_groups[0]["lr"], peak_mem_mb=self.peak_memory_mb())
         assert self.log is not None
         self.log.write(self.iteration, row)

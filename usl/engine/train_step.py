@@ -1,5 +1,9 @@
 """One guarded optimisation step: the model (DDP-wrapped when distributed), optimizer, LR schedule,
-autocast on CUDA, gradient clipping, and a NaN/inf guard that skips the step on every rank."""
+autocast on CUDA, gradient clipping, and a NaN/inf guard that skips the step on every rank.
+
+The step never waits for the device: the guard hands its verdict to the fused optimizer as
+``found_inf`` (the protocol ``GradScaler`` uses), which leaves parameters and state untouched on a
+non-finite step, and the returned values are 0-d tensors the trainer reads once per log interval."""
 
 from __future__ import annotations
 
@@ -41,7 +45,7 @@ class TrainStep:
         self.scheduler = build_scheduler(self.optimizer, cfg.optim)
         self.amp_dtype = AMP_DTYPES.get(cfg.train.amp) if info.device.type == "cuda" else None
         self.scaler = torch.amp.GradScaler("cuda", enabled=self.amp_dtype is torch.float16)
-        self.skipped = 0
+        self.skipped_total = torch.zeros((), dtype=torch.long, device=info.device)
 
     def state_dict(self) -> dict[str, Any]:
         return {
@@ -57,13 +61,19 @@ class TrainStep:
         self.optimizer.load_state_dict(state["optimizer"])
         self.scheduler.load_state_dict(state["scheduler"])
         self.scaler.load_state_dict(state["scaler"])
-        self.skipped = int(state.get("skipped_steps", 0))
+        self.skipped_total.fill_(int(state.get("skipped_steps", 0)))
 
-    def __call__(self, batch: list[MultiViewSample], diagnostics: bool = False) -> dict[str, float]:
-        """Forward, backward, clip, guard, step; returns the losses, ``grad_norm`` (before clipping),
-        ``clipped``, ``skipped`` (and the model's gradient diagnostics when asked: see ``USLModel.forward``)."""
+    @property
+    def skipped(self) -> int:
+        """Steps skipped as non-finite so far (reads the device)."""
+        return int(self.skipped_total)
+
+    def __call__(self, batch: list[MultiViewSample], diagnostics: bool = False) -> dict[str, torch.Tensor]:
+        """Forward, backward, clip, guard, step; returns 0-d tensors: the losses, ``grad_norm`` (before
+        clipping), ``clipped``, ``skipped`` (and the model's gradient diagnostics when asked: see
+        ``USLModel.forward``)."""
         device = self.info.device
-        batch = [sample.to(device) for sample in batch]
+        batch = [sample.to(device, non_blocking=True) for sample in batch]
         iteration = self.scheduler.last_epoch  # optimizer steps taken so far, resumed exactly
         with torch.autocast(device.type, dtype=self.amp_dtype or torch.bfloat16, enabled=self.amp_dtype is not None):
             losses = self.net(batch, iteration=iteration, diagnostics=diagnostics)
@@ -73,19 +83,18 @@ class TrainStep:
         clip = self.cfg.optim.clip_grad_norm
         grad_norm = torch.nn.utils.clip_grad_norm_(self.params, clip if clip > 0 else math.inf)
         finite = torch.isfinite(loss.detach()) & torch.isfinite(grad_norm)
-        ok = bool(all_reduce_min(finite.float().reshape(1)).item() > 0)  # every rank skips together
-        if ok:
-            self.scaler.step(self.optimizer)
-        else:
-            self.skipped += 1
+        skipped = all_reduce_min(finite.float().reshape(1)).reshape(()) <= 0  # every rank skips together
+        # the fused optimizer skips on device when found_inf is set (GradScaler sets it itself)
+        self.optimizer.grad_scale, self.optimizer.found_inf = None, skipped.float()
+        self.scaler.step(self.optimizer)
+        self.skipped_total += skipped
         self.scaler.update()
         self.optimizer.zero_grad(set_to_none=True)
         with warnings.catch_warnings():  # a skipped step is deliberate; the schedule counts iterations
             warnings.filterwarnings("ignore", message="Detected call of `lr_scheduler.step", category=UserWarning)
             self.scheduler.step()
-        values = {k: float(v.detach()) for k, v in losses.items()}
+        values = {k: v.detach() for k, v in losses.items()}
         # grad_norm is the norm before clipping; clipped's mean over a log interval is the share of steps clipped
-        values.update(
-            grad_norm=float(grad_norm), clipped=float(ok and 0 < clip < float(grad_norm)), skipped=float(not ok)
-        )
+        clipped = ~skipped & (grad_norm > clip) if clip > 0 else torch.zeros_like(skipped)
+        values.update(grad_norm=grad_norm.detach(), clipped=clipped.float(), skipped=skipped.float())
         return values

@@ -30,8 +30,9 @@ class _Topology:
         self.num_verts = torch.tensor(verts_counts, dtype=torch.int64, device=device)
         self.num_faces = torch.tensor(faces_counts, dtype=torch.int64, device=device)
         mesh_ids = torch.arange(len(verts_counts), device=device)
-        self.verts_to_mesh = torch.repeat_interleave(mesh_ids, self.num_verts)
-        self.faces_to_mesh = torch.repeat_interleave(mesh_ids, self.num_faces)
+        # output sizes known on the host: no device read
+        self.verts_to_mesh = torch.repeat_interleave(mesh_ids, self.num_verts, output_size=sum(verts_counts))
+        self.faces_to_mesh = torch.repeat_interleave(mesh_ids, self.num_faces, output_size=sum(faces_counts))
         self.first_vert = torch.cumsum(self.num_verts, 0) - self.num_verts
         self._cache: dict[object, Tensor] = {}
 
@@ -44,7 +45,7 @@ class _Topology:
     def edges(self) -> Tensor:
         if "edges" not in self._cache:
             if self.template is not None:
-                local = unique_edges(self.template)
+                local = unique_edges(self.template, self.verts_counts[0] if self.verts_counts else None)
                 offsets = self.first_vert[:, None, None]
                 self._cache["edges"] = (local.unsqueeze(0) + offsets).reshape(-1, 2)
             else:
@@ -97,7 +98,7 @@ class Meshes:
             raise ValueError(
                 f"Meshes.from_shared_topology: verts must be float (B, V, 3), got {verts.dtype} {tuple(verts.shape)}"
             )
-        _check_faces(faces, verts.shape[1], "template")
+        _check_faces(faces, verts.shape[1], "template", on_device=True)
         num_meshes, num_verts = verts.shape[:2]
         return cls._from_parts(verts.reshape(-1, 3), _Topology.shared(faces.long(), num_meshes, num_verts))
 
@@ -212,13 +213,20 @@ class Meshes:
         return f"Meshes({len(self)} meshes, {self._verts_packed.shape[0]} verts, {kind}, {self.device})"
 
 
-def _check_faces(faces: Tensor, num_verts: int, which: object) -> None:
+def _check_faces(faces: Tensor, num_verts: int, which: object, on_device: bool = False) -> None:
+    """``on_device``: the index range is asserted on the device (a RuntimeError, raised when the device
+    gets there) rather than read back: the model's template is checked on every step."""
     if faces.dim() != 2 or faces.shape[1] != 3 or faces.is_floating_point():
         raise ValueError(
             f"Meshes: faces of mesh {which} must be an integer (F, 3) tensor, got {faces.dtype} {tuple(faces.shape)}"
         )
-    if faces.numel() and (int(faces.min()) < 0 or int(faces.max()) >= num_verts):
-        raise ValueError(f"Meshes: faces of mesh {which} index outside its {num_verts} vertices")
+    if not faces.numel():
+        return
+    message = f"Meshes: faces of mesh {which} index outside its {num_verts} vertices"
+    if on_device:
+        torch._assert_async((faces.min() >= 0) & (faces.max() < num_verts), message)
+    elif int(faces.min()) < 0 or int(faces.max()) >= num_verts:
+        raise ValueError(message)
 
 
 def _check_verts(verts: Tensor, which: object) -> None:

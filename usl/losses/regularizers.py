@@ -17,7 +17,8 @@ def _mean_per_mesh(values: Tensor, mesh_idx: Tensor, num_meshes: int) -> Tensor:
     if num_meshes == 0:
         return values.sum() * 0.0
     sums = values.new_zeros(num_meshes).index_add(0, mesh_idx, values)
-    counts = torch.bincount(mesh_idx, minlength=num_meshes).clamp(min=1)
+    # index_add, not bincount: bincount's output size is read from the device
+    counts = values.new_zeros(num_meshes).index_add(0, mesh_idx, torch.ones_like(values)).clamp(min=1)
     return (sums / counts).mean()
 
 

@@ -4,7 +4,7 @@
 mean over the batch's images. Two choices the paper leaves open:
 
 * An object not annotated in view j (out of frame, fully occluded, not tracked) has no true
-  silhouette there; its (o, j) pair is dropped rather than compared with an empty mask, because
+  silhouette there; its (o, j) pair is dropped (weight 0) rather than compared with an empty mask, because
   our renderer draws each object alone (no occluders) and an empty target would push an
   occluded object out of the view. The per-image mean runs over the remaining pairs; the
   input view always has every object.
@@ -18,6 +18,7 @@ silhouettes with sigma ~ 1e-4 are not safe in half precision.
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -39,6 +40,7 @@ from usl.losses import (
     soft_iou_loss,
 )
 from usl.render import render_dynamic
+from usl.render.resample import stack_masks
 
 Tensor = torch.Tensor
 
@@ -48,18 +50,21 @@ REGULARIZERS = ("edge", "offset_l2", "laplacian", "normal")
 
 @dataclass
 class _Pairs:
-    """(object, view) pairs of the whole batch, gathered sample by sample."""
+    """Every (object, view) pair of the batch, sample by sample, views in order. A pair whose object
+    is not annotated in that view (``present`` False) is kept, with weight 0 and out of every mean:
+    shapes then depend only on the batch's object and view counts, never on the data."""
 
-    verts: list[Tensor]  # (n, V, 3) meshes in view j's camera frame
-    points: list[Tensor]  # (n, S, 3) mesh surface points in view j's camera frame
-    true_points: list[Tensor]  # (n, T, 2)
-    true_lengths: list[Tensor]  # (n,)
-    masks: list[Tensor]  # n masks (H_j, W_j)
-    K: list[Tensor]  # (n, 3, 3)
-    sizes: list[Tensor]  # (n, 2) (H, W)
-    weight: list[Tensor]  # (n,) 1 / (pairs of the sample's image) / batch size
-    is_input: list[Tensor]  # (n,) bool, the pair's view is the input view
-    occluders: list[Tensor]  # n masks (H_j, W_j): other objects' pixels (loss.ignore_occluders)
+    verts: Tensor  # (P, V, 3) meshes in view j's camera frame
+    points: Tensor  # (P, S, 3) mesh surface points in view j's camera frame
+    true_points: Tensor  # (P, T, 2)
+    true_lengths: Tensor  # (P,)
+    masks: Tensor | list[Tensor]  # (P, H, W) (or P masks of their views' sizes)
+    occluders: Tensor | list[Tensor] | None  # other objects' pixels (loss.ignore_occluders)
+    K: Tensor  # (P, 3, 3)
+    sizes: Tensor  # (P, 2) (H, W)
+    present: Tensor  # (P,) bool
+    weight: Tensor  # (P,) 1 / (present pairs of the sample's image) / batch size; 0 where absent
+    is_input: Tensor  # (P,) bool, the pair's view is the input view
 
 
 class SilhouetteLoss(NamedTuple):
@@ -93,32 +98,23 @@ def multiview_silhouette_loss(
     ``iteration`` sets l_dist's factor ``cfg.weights.dist * cfg.dist_scale * cfg.dist_schedule(iteration)``.
     """
     verts_cam = verts_cam.float()
-    pairs = _Pairs([], [], [], [], [], [], [], [], [], [])
-    starts = torch.tensor([0] + counts).cumsum(0).tolist()
-    for index, sample in enumerate(samples):
-        verts = verts_cam[starts[index] : starts[index + 1]]
-        if len(verts):
-            _gather_pairs(verts, faces, sample, cfg, len(samples), pairs)
-    if not pairs.verts:
+    if not sum(counts):
         zero = verts_cam.sum() * 0.0
         return SilhouetteLoss(zero, zero, zero, {})
-    verts, K = torch.cat(pairs.verts), torch.cat(pairs.K)
+    pairs = _gather_pairs(verts_cam, faces, samples, counts, cfg)
+    verts, K, present = pairs.verts, pairs.K, pairs.present
     dist_factor = cfg.weights.dist * cfg.dist_scale * cfg.dist_schedule(iteration)
     if dist_factor:
-        dist = silhouette_chamfer_loss(
-            torch.cat(pairs.points),
-            K,
-            torch.cat(pairs.sizes),
-            torch.cat(pairs.true_points),
-            torch.cat(pairs.true_lengths),
-        )
+        dist = silhouette_chamfer_loss(pairs.points, K, pairs.sizes, pairs.true_points, pairs.true_lengths)
     else:  # "w/o l_dist": not computed, so it contributes exactly no gradient (and costs nothing)
         dist = verts.new_zeros(len(verts))
     num_pairs, num_verts = verts.shape[:2]
     faces_packed = (faces[None] + num_verts * torch.arange(num_pairs, device=faces.device)[:, None, None]).reshape(
         -1, 3
     )
-    face_window = torch.arange(num_pairs, device=faces.device).repeat_interleave(faces.shape[0])
+    face_window = torch.arange(num_pairs, device=faces.device).repeat_interleave(
+        faces.shape[0], output_size=num_pairs * faces.shape[0]
+    )
     render = cfg.render
     rendered = render_dynamic(
         verts.reshape(-1, 3),
@@ -129,64 +125,107 @@ def multiview_silhouette_loss(
         render.resolution,
         render.settings(),
         render.padding,
-        ignore_masks=pairs.occluders if cfg.ignore_occluders else None,
+        ignore_masks=pairs.occluders,
+        image_sizes=pairs.sizes,
     )
     xent = silhouette_bce_loss(rendered.soft, rendered.target, rendered.valid, cfg.iou_threshold)
-    is_input = torch.cat(pairs.is_input)
-    others = ~is_input
+    is_input = pairs.is_input
+    others = present & ~is_input
     other_views = (
-        {"iou_pass_views": xent.gate[others].float().mean(), "iou_views": xent.iou[others].mean()}
-        if bool(others.any())
+        {"iou_pass_views": _mean(xent.gate, others), "iou_views": _mean(xent.iou, others)}
+        if any(len(sample.views) > 1 for sample in samples)
         else {}
     )
     if cfg.xent_gate == "all":  # l_xent on every pair
         xent = xent._replace(gate=torch.ones_like(xent.gate))
     elif not cfg.gate_input_view:
         xent = xent._replace(gate=xent.gate | is_input)
-    weight = torch.cat(pairs.weight)
     soft_iou = soft_iou_loss(rendered.soft, rendered.target, rendered.valid) if cfg.weights.soft_iou else None
     shape_terms = xent if soft_iou is None else xent._replace(loss=xent.loss + cfg.weights.soft_iou * soft_iou)
-    l3d = (l2d_loss(dist_factor * dist, shape_terms) * weight).sum()
-    dist_part = (dist_factor * dist * weight).sum()  # the gated l_xent part is the rest of l_2D
+    l3d = (l2d_loss(dist_factor * dist, shape_terms) * pairs.weight).sum()
+    dist_part = (dist_factor * dist * pairs.weight).sum()  # the gated l_xent part is the rest of l_2D
     stats = {
-        **({"l_dist": dist.detach().mean()} if dist_factor else {}),
-        "l_xent": xent.loss.detach().mean(),
-        "l_xent_reached": xent.loss_reached.mean(),
-        **({"l_soft_iou": soft_iou.detach().mean()} if soft_iou is not None else {}),
-        "unreached": xent.unreached.mean(),
-        "xent_gate": xent.gate.float().mean(),
-        "iou_input": xent.iou[is_input].mean(),
+        **({"l_dist": _mean(dist.detach(), present)} if dist_factor else {}),
+        "l_xent": _mean(xent.loss.detach(), present),
+        "l_xent_reached": _mean(xent.loss_reached, present),
+        **({"l_soft_iou": _mean(soft_iou.detach(), present)} if soft_iou is not None else {}),
+        "unreached": _mean(xent.unreached, present),
+        "xent_gate": _mean(xent.gate, present),
+        "iou_input": _mean(xent.iou, present & is_input),
         **other_views,
-        "dist_factor": torch.tensor(dist_factor),
+        "dist_factor": l3d.new_tensor(dist_factor),
     }
     return SilhouetteLoss(l3d, dist_part, l3d - dist_part, stats)
 
 
+def _mean(values: Tensor, keep: Tensor) -> Tensor:
+    """Mean of ``values`` over the pairs ``keep`` marks (0 if none), without reading the device."""
+    keep = keep.to(torch.float32)
+    return (values.to(torch.float32) * keep).sum() / keep.sum().clamp(min=1.0)
+
+
 def _gather_pairs(
-    verts: Tensor, faces: Tensor, sample: MultiViewSample, cfg: LossConfig, batch_size: int, pairs: _Pairs
-) -> None:
-    generator = torch.Generator(device=verts.device).manual_seed(sample.seed)
-    surface = sample_points_from_meshes(Meshes.from_shared_topology(verts, faces), cfg.mesh_points, generator)
-    input_pose = sample.views[0].cam_to_world
-    num_pairs = sum(int(view.present.sum()) for view in sample.views)
-    for position, view in enumerate(sample.views):
-        present = torch.nonzero(view.present).squeeze(1)
-        if len(present) == 0:
+    verts_cam: Tensor, faces: Tensor, samples: list[MultiViewSample], counts: list[int], cfg: LossConfig
+) -> _Pairs:
+    """All pairs, one block per sample: its N objects in each of its M views (view-major)."""
+    device, batch_size = verts_cam.device, len(samples)
+    parts: dict[str, list] = {name: [] for name in _Pairs.__dataclass_fields__}
+    for sample, verts in zip(samples, verts_cam.split(counts)):
+        if not len(verts):
             continue
-        to_view = relative_transform(input_pose, view.cam_to_world).float()
-        masks = view.masks[present]
-        true_points, true_lengths = sample_mask_points(masks, cfg.mask_points, generator=generator)
-        pairs.verts.append(transform_points(verts[present], to_view))
-        pairs.points.append(transform_points(surface[present], to_view))
-        pairs.true_points.append(true_points)
-        pairs.true_lengths.append(true_lengths)
-        pairs.masks.extend(masks.unbind(0))
-        pairs.K.append(view.K.float().expand(len(present), 3, 3))
-        pairs.sizes.append(torch.tensor(view.size, device=verts.device).expand(len(present), 2))
-        pairs.weight.append(torch.full((len(present),), 1.0 / (num_pairs * batch_size), device=verts.device))
-        pairs.is_input.append(torch.full((len(present),), position == 0, device=verts.device))
+        num_objects, num_views = len(verts), len(sample.views)
+        # the sample's generator keys its draws: the same points whatever batch it lands in
+        generator = torch.Generator(device=device).manual_seed(sample.seed)
+        surface = sample_points_from_meshes(Meshes.from_shared_topology(verts, faces), cfg.mesh_points, generator)
+        poses = torch.stack([view.cam_to_world for view in sample.views])
+        to_view = relative_transform(poses[:1], poses).float()[:, None]  # (M, 1, 4, 4)
+        masks = _view_masks(sample)
+        true_points, true_lengths = sample_mask_points(
+            masks if isinstance(masks, Tensor) else stack_masks(masks), cfg.mask_points, generator=generator
+        )
+        present = torch.cat([view.present for view in sample.views]).bool()
+        parts["verts"].append(transform_points(verts[None], to_view).flatten(0, 1))
+        parts["points"].append(transform_points(surface[None], to_view).flatten(0, 1))
+        parts["true_points"].append(true_points)
+        parts["true_lengths"].append(true_lengths)
+        parts["masks"].append(masks)
         if cfg.ignore_occluders:
-            pairs.occluders.extend((view.masks.any(dim=0) & ~masks).unbind(0))
+            parts["occluders"].append(_occluders(sample))
+        parts["K"].append(torch.stack([view.K.float() for view in sample.views]).repeat_interleave(num_objects, 0))
+        sizes = torch.tensor([view.size for view in sample.views], device=device)
+        parts["sizes"].append(sizes.repeat_interleave(num_objects, 0))
+        parts["present"].append(present)
+        parts["weight"].append(present.float() / (present.sum().clamp(min=1) * batch_size))
+        is_input = torch.zeros(num_views, num_objects, dtype=torch.bool, device=device)
+        is_input[0] = True
+        parts["is_input"].append(is_input.flatten())
+    masks, occluders = parts.pop("masks"), parts.pop("occluders")
+    return _Pairs(
+        masks=_join_masks(masks),
+        occluders=_join_masks(occluders) if cfg.ignore_occluders else None,
+        **{name: torch.cat(values) for name, values in parts.items()},
+    )
+
+
+def _view_masks(sample: MultiViewSample) -> Tensor | list[Tensor]:
+    """(M N, H, W) masks of the sample's views, or M N masks when its views differ in size."""
+    if len({view.size for view in sample.views}) == 1:
+        return torch.cat([view.masks for view in sample.views])
+    return [mask for view in sample.views for mask in view.masks]
+
+
+def _occluders(sample: MultiViewSample) -> Tensor | list[Tensor]:
+    """Each pair's pixels of the other objects in that view."""
+    blocks = [view.masks.any(dim=0, keepdim=True) & ~view.masks for view in sample.views]
+    if len({view.size for view in sample.views}) == 1:
+        return torch.cat(blocks)
+    return [mask for block in blocks for mask in block]
+
+
+def _join_masks(blocks: list[Tensor | list[Tensor]]) -> Tensor | list[Tensor]:
+    if all(isinstance(b, Tensor) for b in blocks) and len({tuple(b.shape[1:]) for b in blocks}) == 1:
+        return torch.cat(blocks)
+    return [mask for block in blocks for mask in block]
 
 
 def shape_regularizers(
@@ -200,7 +239,7 @@ def shape_regularizers(
     zero = verts_cube.sum() * 0.0
     result: dict[str, Tensor | None] = {name: (zero.clone() if need.get(name) else None) for name in REGULARIZERS}
     pairs = faces_on_each_edge(faces) if need.get("normal") else None
-    starts = torch.tensor([0] + counts).cumsum(0).tolist()
+    starts = [0, *itertools.accumulate(counts)]
     batch = len(counts)
     for index in range(batch):
         rows = slice(starts[index], starts[index + 1])

@@ -7,7 +7,7 @@ Inputs are packed tensors, so a ``usl.geometry.meshes.Meshes`` batch plugs in as
 
 from usl.render.dynamic import DynamicRender, render_dynamic
 from usl.render.hard import HardRender, rasterize_hard
-from usl.render.resample import resample_mask_area
+from usl.render.resample import resample_masks_area
 from usl.render.soft import SoftRasterSettings, rasterize_soft, rasterize_soft_dense
 
 __all__ = [
@@ -18,5 +18,5 @@ __all__ = [
     "rasterize_soft",
     "rasterize_soft_dense",
     "render_dynamic",
-    "resample_mask_area",
+    "resample_masks_area",
 ]

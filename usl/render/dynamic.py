@@ -17,7 +17,9 @@ of the image's shorter side.
 
 The mesh is rasterized at ``resolution`` x ``resolution`` through ``K_window = A @ K``,
 where A maps the window onto the R x R grid, and the target is the exact-area coverage
-of the true mask over each cell (:mod:`usl.render.resample`).
+of the true mask over each cell (:mod:`usl.render.resample`). Every step runs on all pairs at
+once, on the device: the op count does not grow with the number of pairs, and no window is read
+back to the host.
 """
 
 from __future__ import annotations
@@ -28,7 +30,7 @@ from dataclasses import dataclass
 import torch
 
 from usl.metrics.boxes import masks_to_boxes
-from usl.render.resample import resample_mask_area
+from usl.render.resample import resample_masks_area, stack_masks
 from usl.render.screen import check_packed_inputs, project_faces
 from usl.render.soft import SoftRasterSettings, rasterize_soft
 
@@ -59,7 +61,8 @@ def render_dynamic(
     padding: float = 0.05,
     min_size: float = 4.0,
     true_boxes: Tensor | None = None,
-    ignore_masks: Sequence[Tensor] | None = None,
+    ignore_masks: Tensor | Sequence[Tensor] | None = None,
+    image_sizes: Tensor | None = None,
 ) -> DynamicRender:
     """Soft silhouettes and matching true-mask crops for P (object, view) pairs.
 
@@ -70,35 +73,40 @@ def render_dynamic(
         face_window: (F,) long pair index p of each face, in [0, P).
         K: (P, 3, 3) full-image intrinsics of each pair's view.
         true_masks: (P, H, W) bool, or a sequence of P (H_p, W_p) bool masks; the mask
-            shape is the view's image size.
+            shape is the view's image size (masks of different sizes are padded to one).
         resolution: R, the side of every rendered window (the paper: 128 or 72).
         settings: soft rasterizer parameters (the paper: the defaults).
         padding: growth of the union box, as a fraction of its longer side, on every side.
         min_size: smallest window side in image pixels.
         true_boxes: (P, 4) boxes of the true masks (e.g. the records' ``box_xyxy``), to skip
             computing them from the masks; they must contain the masks' True pixels.
-        ignore_masks: optional P (H_p, W_p) bool masks of unobserved pixels (e.g. where another
-            object is in the way): cells covered more than half by them are not ``valid``.
+        ignore_masks: optional (P, H, W) or P (H_p, W_p) bool masks of unobserved pixels (e.g.
+            where another object is in the way): cells covered more than half by them are not ``valid``.
+        image_sizes: (P, 2) (height, width) of each pair's view, when the masks are a padded
+            (P, H, W) stack of views of different sizes (default: the masks' shapes).
     """
     check_packed_inputs(verts, faces, face_window, K, "render_dynamic")
     num_pairs = K.shape[0]
     if len(true_masks) != num_pairs:
         raise ValueError(f"render_dynamic: K has {num_pairs} pairs but true_masks has {len(true_masks)}")
+    if ignore_masks is not None and len(ignore_masks) != num_pairs:
+        raise ValueError(f"render_dynamic: K has {num_pairs} pairs but ignore_masks has {len(ignore_masks)}")
     faces, face_window = faces.long(), face_window.long()
-    image_sizes = torch.tensor([tuple(m.shape[-2:]) for m in true_masks], dtype=torch.float64, device=K.device)
+    if image_sizes is None:
+        image_sizes = _mask_sizes(true_masks, num_pairs)
+    image_sizes = image_sizes.to(device=K.device, dtype=torch.float64)
+    masks = stack_masks(true_masks).to(K.device)
     with torch.no_grad():
-        truth = mask_boxes(true_masks) if true_boxes is None else _empty_if_degenerate(true_boxes.to(torch.float64))
+        truth = mask_boxes(masks) if true_boxes is None else _empty_if_degenerate(true_boxes.to(torch.float64))
         boxes = _union(truth.to(K.device), projected_boxes(verts, faces, face_window, K, settings.near))
         windows = square_windows(boxes, image_sizes, padding, min_size)
     K_window = window_intrinsics(windows, resolution).to(K.dtype) @ K
     soft = rasterize_soft(verts, faces, face_window, K_window, resolution, resolution, settings)
-    target = torch.stack([resample_mask_area(m, w.tolist(), resolution) for m, w in zip(true_masks, windows)])
+    target = resample_masks_area(masks, windows, resolution)
     valid = _cells_inside_image(windows, image_sizes, resolution)
     if ignore_masks is not None:
-        if len(ignore_masks) != num_pairs:
-            raise ValueError(f"render_dynamic: K has {num_pairs} pairs but ignore_masks has {len(ignore_masks)}")
-        hidden = torch.stack([resample_mask_area(m, w.tolist(), resolution) for m, w in zip(ignore_masks, windows)])
-        valid = valid & (hidden <= 0.5).to(valid.device)
+        hidden = resample_masks_area(stack_masks(ignore_masks).to(K.device), windows, resolution)
+        valid = valid & (hidden <= 0.5)
     return DynamicRender(
         soft=soft,
         target=target.to(device=soft.device, dtype=soft.dtype),
@@ -108,18 +116,19 @@ def render_dynamic(
     )
 
 
-def mask_boxes(masks: Tensor | Sequence[Tensor]) -> Tensor:
-    """(P, 4) float64 pixel-frame boxes [x0, y0, x1, y1] of the masks' True pixels.
+def _mask_sizes(masks: Tensor | Sequence[Tensor], num_pairs: int) -> Tensor:
+    if isinstance(masks, Tensor):
+        return torch.tensor(masks.shape[-2:], dtype=torch.float64).expand(num_pairs, 2)
+    return torch.tensor([tuple(m.shape[-2:]) for m in masks], dtype=torch.float64).reshape(num_pairs, 2)
+
+
+def mask_boxes(masks: Tensor) -> Tensor:
+    """(P, 4) float64 pixel-frame boxes [x0, y0, x1, y1] of the masks' (P, H, W) True pixels.
 
     The tight box is the metrics' one (``usl.metrics.masks_to_boxes``); an empty mask gets the
     empty box (+inf, +inf, -inf, -inf) instead of NaN, because here boxes are united.
     """
-    if isinstance(masks, Tensor) and masks.dim() == 3:
-        boxes = masks_to_boxes(masks).to(torch.float64)
-    elif len(masks):
-        boxes = torch.cat([masks_to_boxes(m.unsqueeze(0)) for m in masks]).to(torch.float64)
-    else:
-        return torch.zeros(0, 4, dtype=torch.float64)
+    boxes = masks_to_boxes(masks).to(torch.float64)
     empty = boxes.isnan().any(dim=1, keepdim=True)
     return torch.where(empty, _empty_boxes(boxes.shape[0], boxes.device), boxes)
 

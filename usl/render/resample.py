@@ -5,11 +5,14 @@ taken as the unit square it occupies in the pixel frame (docs/design.md §2). Th
 any fractional window, up- or downsampling alike, with no aliasing: the continuous
 integral of a piecewise-constant mask is the bilinear interpolation of its summed-area
 table at the cell corners. Area outside the image counts as uncovered.
+
+All P windows are resampled at once: one integer summed-area table per mask (exact counts),
+sampled at every window's (R + 1)^2 cell corners with one gather, so the cost in ops does not
+grow with P and nothing is read back to the host.
 """
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 
 import torch
@@ -17,37 +20,53 @@ import torch
 Tensor = torch.Tensor
 
 
-def resample_mask_area(mask: Tensor, window: Sequence[float], resolution: int) -> Tensor:
-    """Coverage (resolution, resolution) float64 in [0, 1] of ``mask`` (H, W) over ``window``.
+def stack_masks(masks: Tensor | Sequence[Tensor]) -> Tensor:
+    """(P, H, W) bool masks; masks of different sizes are padded with False to the largest (area
+    outside an image counts as uncovered, so padding changes no coverage and no box)."""
+    if isinstance(masks, Tensor):
+        return masks.bool()
+    if not len(masks):
+        return torch.zeros(0, 1, 1, dtype=torch.bool)
+    height, width = max(m.shape[-2] for m in masks), max(m.shape[-1] for m in masks)
+    if all(tuple(m.shape[-2:]) == (height, width) for m in masks):
+        return torch.stack(list(masks)).bool()
+    out = torch.zeros(len(masks), height, width, dtype=torch.bool, device=masks[0].device)
+    for index, mask in enumerate(masks):
+        out[index, : mask.shape[-2], : mask.shape[-1]] = mask
+    return out
 
-    ``window`` is [x0, y0, x1, y1] in the mask's pixel frame (may extend past the image).
+
+def resample_masks_area(masks: Tensor, windows: Tensor, resolution: int) -> Tensor:
+    """Coverage (P, R, R) float64 in [0, 1] of each mask (P, H, W) over its window (P, 4).
+
+    ``windows`` are [x0, y0, x1, y1] in the masks' pixel frame with x1 > x0 and y1 > y0; they may
+    extend past the image.
     """
-    height, width = mask.shape
-    x0, y0, x1, y1 = (float(v) for v in window)
-    if not (x1 > x0 and y1 > y0):
-        raise ValueError(f"resample_mask_area: window must have x1 > x0 and y1 > y0, got {[x0, y0, x1, y1]}")
-    out = torch.zeros(resolution, resolution, dtype=torch.float64, device=mask.device)
-    c0, c1 = max(0, math.floor(x0)), min(width, math.ceil(x1))
-    r0, r1 = max(0, math.floor(y0)), min(height, math.ceil(y1))
-    if c1 <= c0 or r1 <= r0:
-        return out
-    crop = mask[r0:r1, c0:c1].to(torch.float64)
-    table = torch.zeros(r1 - r0 + 1, c1 - c0 + 1, dtype=torch.float64, device=mask.device)
-    table[1:, 1:] = crop.cumsum(0).cumsum(1)
-    ex = torch.linspace(x0, x1, resolution + 1, dtype=torch.float64, device=mask.device) - c0
-    ey = torch.linspace(y0, y1, resolution + 1, dtype=torch.float64, device=mask.device) - r0
-    integral = _bilinear_on_grid(table, ey.clamp(0, r1 - r0), ex.clamp(0, c1 - c0))
-    cells = integral[1:, 1:] - integral[:-1, 1:] - integral[1:, :-1] + integral[:-1, :-1]
+    num, height, width = masks.shape
+    windows = windows.to(device=masks.device, dtype=torch.float64)
+    table = torch.zeros(num, height + 1, width + 1, dtype=torch.int32, device=masks.device)
+    table[:, 1:, 1:] = masks.to(torch.int32).cumsum(1, dtype=torch.int32).cumsum(2, dtype=torch.int32)
+    steps = torch.arange(resolution + 1, dtype=torch.float64, device=masks.device) / resolution
+    x0, y0, x1, y1 = windows.unbind(1)
+    ex = (x0[:, None] + steps * (x1 - x0)[:, None]).clamp(0, width)  # (P, R + 1) cell edges
+    ey = (y0[:, None] + steps * (y1 - y0)[:, None]).clamp(0, height)
+    integral = _bilinear_on_grids(table, ey, ex)
+    cells = integral[:, 1:, 1:] - integral[:, :-1, 1:] - integral[:, 1:, :-1] + integral[:, :-1, :-1]
     cell_area = (x1 - x0) * (y1 - y0) / resolution**2
-    return (cells / cell_area).clamp(0.0, 1.0)
+    return (cells / cell_area[:, None, None]).clamp(0.0, 1.0)
 
 
-def _bilinear_on_grid(table: Tensor, ys: Tensor, xs: Tensor) -> Tensor:
-    """Bilinear interpolation of ``table`` (integer-corner samples) at the grid ys x xs."""
-    iy = ys.floor().long().clamp(max=table.shape[0] - 2)
-    ix = xs.floor().long().clamp(max=table.shape[1] - 2)
-    fy, fx = (ys - iy)[:, None], (xs - ix)[None, :]
-    iy, ix = iy[:, None], ix[None, :]
-    top = table[iy, ix] * (1 - fx) + table[iy, ix + 1] * fx
-    bottom = table[iy + 1, ix] * (1 - fx) + table[iy + 1, ix + 1] * fx
+def _bilinear_on_grids(table: Tensor, ys: Tensor, xs: Tensor) -> Tensor:
+    """Bilinear interpolation of each table (P, H + 1, W + 1) (integer-corner samples) at its grid ys x xs."""
+    num, rows, cols = table.shape
+    iy = ys.floor().long().clamp(max=rows - 2)  # (P, R + 1)
+    ix = xs.floor().long().clamp(max=cols - 2)
+    fy, fx = (ys - iy)[:, :, None], (xs - ix)[:, None, :]
+    base = (
+        (torch.arange(num, device=table.device) * rows * cols)[:, None, None] + iy[:, :, None] * cols + ix[:, None, :]
+    )
+    flat = table.reshape(-1)
+    corners = [flat[base + offset].to(torch.float64) for offset in (0, 1, cols, cols + 1)]
+    top = corners[0] * (1 - fx) + corners[1] * fx
+    bottom = corners[2] * (1 - fx) + corners[3] * fx
     return top * (1 - fy) + bottom * fy

@@ -104,10 +104,6 @@ class MaskRCNN(nn.Module):
                     f"target {index}: boxes must be (K, 4) and labels (K,), "
                     f"got {tuple(boxes.shape)} and {tuple(labels.shape)}"
                 )
-            if labels.numel() and (int(labels.min()) < 0 or int(labels.max()) >= self.num_classes):
-                raise InvalidTargetError(
-                    f"target {index}: labels must lie in [0, {self.num_classes}), got {labels.tolist()}"
-                )
             fields = {"gt_boxes": boxes.to(device, torch.float32), "gt_classes": labels.to(device, torch.long)}
             if self.roi_heads.mask_on:
                 masks = target.get("masks")
@@ -118,7 +114,21 @@ class MaskRCNN(nn.Module):
                     )
                 fields["gt_masks"] = masks.to(device, torch.bool)
             converted.append(Instances(size, **fields))
+        self._check_labels([instances.gt_classes for instances in converted])
         return converted
+
+    def _check_labels(self, labels: list[Tensor]) -> None:
+        """Every image's labels in [0, num_classes), read back once for the whole batch."""
+        if not any(len(image_labels) for image_labels in labels):
+            return
+        flat = torch.cat(labels)
+        image = torch.cat([torch.full_like(image_labels, i) for i, image_labels in enumerate(labels)])
+        bad = (flat < 0) | (flat >= self.num_classes)
+        first = int(torch.where(bad, image, len(labels)).min())
+        if first < len(labels):
+            raise InvalidTargetError(
+                f"target {first}: labels must lie in [0, {self.num_classes}), got {labels[first].tolist()}"
+            )
 
     @staticmethod
     def instances_to_dict(detections: Instances) -> dict[str, Tensor]:

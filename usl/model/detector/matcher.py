@@ -43,13 +43,13 @@ class Matcher:
             return zeros, zeros.clone()
         matched_quality, matches = quality.max(dim=0)
         labels = torch.full_like(matches, self.labels[0])
-        for threshold, label in zip(self.thresholds, self.labels[1:]):
-            labels[matched_quality >= threshold] = label
+        for threshold, label in zip(self.thresholds, self.labels[1:]):  # where, not t[mask] = v: no device read
+            labels = torch.where(matched_quality >= threshold, label, labels)
         if self.allow_low_quality_matches:
             best_per_gt = quality.max(dim=1, keepdim=True).values
             # Ties count: every prediction achieving a gt's best IoU (> 0) is a match.
             is_best = ((quality == best_per_gt) & (best_per_gt > 0)).any(dim=0)
-            labels[is_best] = 1
+            labels = torch.where(is_best, 1, labels)
         return matches, labels
 
 
@@ -66,3 +66,22 @@ def subsample_labels(labels: Tensor, num_samples: int, positive_fraction: float)
     positive = positive[torch.randperm(positive.numel(), device=labels.device)[:num_positive]]
     negative = negative[torch.randperm(negative.numel(), device=labels.device)[:num_negative]]
     return positive, negative
+
+
+def subsample_labels_dense(labels: Tensor, num_samples: int, positive_fraction: float) -> Tensor:
+    """:func:`subsample_labels` for each row of ``labels`` (N, P) at once, as labels: the sampled
+    foreground 1, the sampled background 0, the rest -1 (ignored). A uniformly random subset of the
+    same sizes, drawn by ranking random keys, so nothing is read back to the host."""
+    keys = torch.rand(labels.shape, device=labels.device)
+    positive, negative = labels == 1, labels == 0
+    chosen_positive = positive & (_random_rank(positive, keys) < int(num_samples * positive_fraction))
+    room = num_samples - chosen_positive.sum(dim=-1, keepdim=True)
+    chosen_negative = negative & (_random_rank(negative, keys) < room)
+    return torch.where(chosen_positive, 1, torch.where(chosen_negative, 0, IGNORE))
+
+
+def _random_rank(member: Tensor, keys: Tensor) -> Tensor:
+    """Each member's 0-based rank among its row's members by ``keys`` (non-members rank after them)."""
+    order = torch.where(member, keys, 2.0).argsort(dim=-1)
+    positions = torch.arange(member.shape[-1], device=member.device).expand_as(order)
+    return torch.empty_like(order).scatter_(-1, order, positions)

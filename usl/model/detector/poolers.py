@@ -8,7 +8,7 @@ from typing import Mapping, Sequence
 import torch
 from torch import nn
 
-from ..ops import box_area, convert_boxes_to_rois, roi_align
+from ..ops import box_area, convert_boxes_to_rois, roi_align_levels
 
 Tensor = torch.Tensor
 
@@ -57,14 +57,8 @@ class MultiScaleRoIAlign(nn.Module):
     def forward(self, features: Mapping[str, Tensor], boxes: Sequence[Tensor]) -> Tensor:
         maps = [features[name] for name in self.in_features]
         rois = convert_boxes_to_rois(boxes, maps[0])
-        if len(self.in_features) == 1:
-            return roi_align(maps[0], rois, self.output_size, self.scales[0], self.sampling_ratio, aligned=True)
         level_of = assign_boxes_to_levels(
             rois[:, 1:], self.min_level, self.max_level, self.canonical_box_size, self.canonical_level
         )
-        pooled = maps[0].new_zeros((len(rois), maps[0].shape[1], self.output_size, self.output_size))
-        for level, (feature, scale) in enumerate(zip(maps, self.scales)):
-            index = torch.nonzero(level_of == level).squeeze(1)
-            if index.numel():
-                pooled[index] = roi_align(feature, rois[index], self.output_size, scale, self.sampling_ratio, True)
-        return pooled
+        # all levels in one pass: no per-level nonzero, one host read of the RoI sizes
+        return roi_align_levels(maps, self.scales, rois, level_of, self.output_size, self.sampling_ratio, aligned=True)

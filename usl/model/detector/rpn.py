@@ -9,9 +9,9 @@ import torch.nn.functional as F
 from torch import nn
 
 from ..backbone import ShapeSpec
-from ..ops import AnchorGenerator, Box2BoxTransform, batched_nms, box_iou, clip_boxes, nonempty_boxes
+from ..ops import AnchorGenerator, Box2BoxTransform, batched_nms, box_iou, nonempty_boxes
 from .config import RPNConfig
-from .matcher import IGNORE, Matcher, subsample_labels
+from .matcher import IGNORE, Matcher, subsample_labels_dense
 from .structures import ImageList, Instances
 
 Tensor = torch.Tensor
@@ -86,22 +86,27 @@ class RPN(nn.Module):
         for target in targets:
             gt_boxes = target.gt_boxes
             matches, labels = self.matcher(box_iou(gt_boxes, anchors))
-            positive, negative = subsample_labels(labels, self.cfg.batch_size_per_image, self.cfg.positive_fraction)
-            sampled = torch.full_like(labels, IGNORE)
-            sampled[positive] = 1
-            sampled[negative] = 0
-            all_labels.append(sampled)
+            all_labels.append(labels)
             all_boxes.append(gt_boxes[matches] if len(gt_boxes) else torch.zeros_like(anchors))
-        return torch.stack(all_labels), torch.stack(all_boxes)
+        labels = subsample_labels_dense(
+            torch.stack(all_labels), self.cfg.batch_size_per_image, self.cfg.positive_fraction
+        )
+        return labels, torch.stack(all_boxes)
 
     def losses(self, anchors: Tensor, logits: Tensor, deltas: Tensor, targets: list[Instances]) -> dict[str, Tensor]:
+        """Sums over all anchors weighted by their sampled labels (no boolean indexing, so no device read)."""
         labels, matched_boxes = self.label_anchors(anchors, targets)
         positive = labels == 1
         valid = labels != IGNORE
-        target_deltas = self.box2box.get_deltas(anchors.expand_as(matched_boxes)[positive], matched_boxes[positive])
+        # anchors that match nothing regress onto themselves (zero deltas, weight 0): finite everywhere
+        anchors = anchors.expand_as(matched_boxes)
+        matched_boxes = torch.where(positive[..., None], matched_boxes, anchors)
+        target_deltas = self.box2box.get_deltas(anchors.reshape(-1, 4), matched_boxes.reshape(-1, 4))
         normalizer = self.cfg.batch_size_per_image * len(targets)
-        loss_loc = F.smooth_l1_loss(deltas[positive], target_deltas, beta=self.cfg.smooth_l1_beta, reduction="sum")
-        loss_cls = F.binary_cross_entropy_with_logits(logits[valid], labels[valid].to(logits.dtype), reduction="sum")
+        loc = F.smooth_l1_loss(deltas.reshape(-1, 4), target_deltas, beta=self.cfg.smooth_l1_beta, reduction="none")
+        loss_loc = (loc.sum(dim=1) * positive.reshape(-1)).sum()
+        cls = F.binary_cross_entropy_with_logits(logits, labels.clamp(min=0).to(logits.dtype), reduction="none")
+        loss_cls = (cls * valid).sum()
         weight = self.cfg.loss_weight / normalizer
         return {"loss_rpn_cls": loss_cls * weight, "loss_rpn_loc": loss_loc * weight}
 
@@ -125,14 +130,30 @@ class RPN(nn.Module):
             levels.append(torch.full((k,), level, device=top_index.device, dtype=torch.long))
         boxes, scores, levels = torch.cat(boxes, 1), torch.cat(scores, 1), torch.cat(levels)
 
+        return self._nms_per_image(boxes, scores, levels, image_sizes, post_topk)
+
+    def _nms_per_image(
+        self, boxes: Tensor, scores: Tensor, levels: Tensor, image_sizes: list[tuple[int, int]], post_topk: int
+    ) -> list[Instances]:
+        """Clip, drop empty boxes, NMS per (image, level) and top-k per image, for all images in one
+        NMS call: two host reads (the boxes kept, the count per image) whatever the batch size."""
+        num_images, per_image = scores.shape
+        sizes = torch.tensor(image_sizes, dtype=boxes.dtype, device=boxes.device)  # (N, 2) height, width
+        high = sizes.flip(1).repeat(1, 2)[:, None]  # (N, 1, 4): width, height, width, height
+        boxes = torch.minimum(boxes.clamp(min=0), high).reshape(-1, 4)
+        scores = scores.reshape(-1)
+        image = torch.arange(num_images, device=boxes.device).repeat_interleave(
+            per_image, output_size=num_images * per_image
+        )
+        keep = nonempty_boxes(boxes, self.cfg.min_box_size) & torch.isfinite(scores) & torch.isfinite(boxes).all(1)
+        index = torch.nonzero(keep).squeeze(1)
+        groups = image[index] * len(self.in_features) + levels.repeat(num_images)[index]
+        kept = index[batched_nms(boxes[index], scores[index], groups, self.cfg.nms_thresh)]
+        # image by image, each in decreasing score (ties by index), as NMS ran on each image alone
+        kept = kept[torch.sort(image[kept], stable=True).indices]
+        counts = (image[kept][None] == torch.arange(num_images, device=boxes.device)[:, None]).sum(1).tolist()
         proposals = []
-        for image_boxes, image_scores, image_size in zip(boxes, scores, image_sizes):
-            image_boxes = clip_boxes(image_boxes, image_size)
-            keep = nonempty_boxes(image_boxes, self.cfg.min_box_size) & torch.isfinite(image_scores)
-            keep &= torch.isfinite(image_boxes).all(dim=1)
-            image_boxes, image_scores, image_levels = image_boxes[keep], image_scores[keep], levels[keep]
-            kept = batched_nms(image_boxes, image_scores, image_levels, self.cfg.nms_thresh)[:post_topk]
-            proposals.append(
-                Instances(image_size, proposal_boxes=image_boxes[kept], objectness_logits=image_scores[kept])
-            )
+        for size, rows in zip(image_sizes, kept.split(counts)):
+            rows = rows[:post_topk]
+            proposals.append(Instances(size, proposal_boxes=boxes[rows], objectness_logits=scores[rows]))
         return proposals

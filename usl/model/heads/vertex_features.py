@@ -46,29 +46,29 @@ def roimap_features(
     num_objects, num_verts = verts_cube.shape[:2]
     if num_objects == 0:
         return feature_maps[0].new_zeros(0, num_verts, sum(m.shape[1] for m in feature_maps), dtype=torch.float32)
-    uv = project_cube_to_image(verts_cube.float(), boxes.float())
-    # Objects grouped by image (they usually are already): each image's vertices are one block of
-    # grid points, and the blocks' samples are joined, not scattered into a preallocated output.
-    order = torch.argsort(image_index, stable=True)
-    grouped = bool(torch.equal(order, torch.arange(num_objects, device=order.device)))
-    images, counts = torch.unique_consecutive(image_index[order], return_counts=True)
-    blocks = list(zip(images.tolist(), (uv if grouped else uv[order]).split(counts.tolist())))
-    per_map = []
-    for feature_map, stride in zip(feature_maps, strides):
-        height, width = feature_map.shape[-2:]
-        extent = torch.tensor([width * stride, height * stride], dtype=uv.dtype, device=uv.device)
-        samples = [
-            # float32 even under autocast: bf16 would misplace samples by cells
-            F.grid_sample(
-                feature_map[image : image + 1].float(),
-                (2.0 * block / extent - 1.0).reshape(1, 1, -1, 2),
-                align_corners=False,
-            )[0, :, 0]
-            for image, block in blocks
-        ]
-        per_map.append(samples[0] if len(samples) == 1 else torch.cat(samples, dim=1))  # (C_k, N * V)
-    out = torch.cat(per_map, dim=0).reshape(-1, num_objects, num_verts).permute(1, 2, 0)
-    return out if grouped else out[torch.argsort(order)]
+    uv = project_cube_to_image(verts_cube.float(), boxes.float()).reshape(-1, 2)
+    image = image_index[:, None].expand(num_objects, num_verts).reshape(-1)
+    # float32 even under autocast: bf16 would misplace samples by cells
+    per_map = [_sample_bilinear(m.float(), image, uv / stride - 0.5) for m, stride in zip(feature_maps, strides)]
+    return torch.cat(per_map, dim=1).reshape(num_objects, num_verts, -1)
+
+
+def _sample_bilinear(feature_map: Tensor, image: Tensor, xy: Tensor) -> Tensor:
+    """(P, C) bilinear samples of ``feature_map`` (B, C, H, W) at cell coordinates ``xy`` (P, 2) of
+    image ``image`` (P,), cell centres at integers, zero outside: ``grid_sample(align_corners=False,
+    padding_mode="zeros")``, for points of all images at once (no per-image grouping, no host read)."""
+    height, width = feature_map.shape[-2:]
+    corner = xy.floor()
+    frac = xy - corner
+    out = 0.0
+    for dy in (0, 1):
+        for dx in (0, 1):
+            x, y = corner[:, 0] + dx, corner[:, 1] + dy
+            inside = (x >= 0) & (x <= width - 1) & (y >= 0) & (y <= height - 1)
+            weight = (frac[:, 0] if dx else 1 - frac[:, 0]) * (frac[:, 1] if dy else 1 - frac[:, 1]) * inside
+            taps = feature_map[image, :, y.clamp(0, height - 1).long(), x.clamp(0, width - 1).long()]
+            out = out + taps * weight[:, None]
+    return out
 
 
 def vertalign_features(roi_features: Tensor, verts_cube: Tensor) -> Tensor:

@@ -12,7 +12,7 @@ from .boxes import (
     pairwise_intersection,
 )
 from .nms import batched_nms, nms
-from .roi_align import RoIAlign, convert_boxes_to_rois, roi_align
+from .roi_align import RoIAlign, convert_boxes_to_rois, roi_align, roi_align_levels
 
 __all__ = [
     "AnchorGenerator",
@@ -30,4 +30,5 @@ __all__ = [
     "nonempty_boxes",
     "pairwise_intersection",
     "roi_align",
+    "roi_align_levels",
 ]

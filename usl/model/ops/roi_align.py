@@ -37,6 +37,10 @@ BoxesArg = Union[Tensor, Sequence[Tensor]]
 DEFAULT_CHUNK_ELEMENTS = 1 << 24
 # RoIs whose window sides agree within this factor are pooled together (padded to the largest).
 _BUCKET_GROWTH = 1.5
+# ...unless padding every window to the largest costs at most this factor more gathered pixels than
+# the windows hold, or fewer than _SMALL_CHUNK pixels: then one chunk (fewer ops) is cheaper.
+_PAD_WASTE = 3.0
+_SMALL_CHUNK = 1 << 14
 
 
 def convert_boxes_to_rois(boxes: BoxesArg, like: Tensor) -> Tensor:
@@ -77,15 +81,41 @@ def roi_align(
     Boxes receive no gradient (as in torchvision); ``input`` does. Integer or bool
     inputs (e.g. instance masks) are pooled in float32 without a float copy of the input.
     """
+    rois = convert_boxes_to_rois(boxes, input)
+    level = torch.zeros(rois.shape[0], dtype=torch.long, device=input.device)
+    return roi_align_levels(
+        [input], [spatial_scale], rois, level, output_size, sampling_ratio, aligned, max_chunk_elements
+    )
+
+
+def roi_align_levels(
+    inputs: Sequence[Tensor],
+    scales: Sequence[float],
+    rois: Tensor,
+    level: Tensor,
+    output_size: Union[int, tuple[int, int]],
+    sampling_ratio: int = -1,
+    aligned: bool = False,
+    max_chunk_elements: int = DEFAULT_CHUNK_ELEMENTS,
+) -> Tensor:
+    """:func:`roi_align` of each RoI (K, 5) from its own map: ``inputs[level[k]]`` (N, C, H_l, W_l),
+    whose ``scales[level[k]]`` maps the box onto it. All levels are pooled in one pass (one host
+    read of the RoI sizes the chunk shapes depend on), e.g. an FPN's levels."""
     out_h, out_w = (output_size, output_size) if isinstance(output_size, int) else tuple(output_size)
-    num_images, channels, height, width = input.shape
-    compute_dtype = torch.promote_types(input.dtype, torch.float32)
-    out_dtype = input.dtype if input.is_floating_point() else compute_dtype
-    rois = convert_boxes_to_rois(boxes, input).detach().to(device=input.device, dtype=compute_dtype)
+    first = inputs[0]
+    num_images, channels = first.shape[:2]
+    compute_dtype = torch.promote_types(first.dtype, torch.float32)
+    out_dtype = first.dtype if first.is_floating_point() else compute_dtype
+    rois = rois.detach().to(device=first.device, dtype=compute_dtype)
     num_rois = rois.shape[0]
     if num_rois == 0:
-        return input.new_zeros((0, channels, out_h, out_w), dtype=out_dtype)
+        return first.new_zeros((0, channels, out_h, out_w), dtype=out_dtype)
+    device = first.device
+    level = level.to(device)
     batch_index = rois[:, 0].long()
+    heights = torch.tensor([m.shape[2] for m in inputs], device=device)[level]
+    widths = torch.tensor([m.shape[3] for m in inputs], device=device)[level]
+    spatial_scale = torch.tensor(list(scales), dtype=compute_dtype, device=device)[level]
     offset = 0.5 if aligned else 0.0
     x0, y0, x1, y1 = (rois[:, i] * spatial_scale - offset for i in range(1, 5))
     roi_w, roi_h = x1 - x0, y1 - y0
@@ -93,23 +123,30 @@ def roi_align(
         roi_w, roi_h = roi_w.clamp(min=1.0), roi_h.clamp(min=1.0)
     grid_h, grid_w = _grid(roi_h, out_h, sampling_ratio), _grid(roi_w, out_w, sampling_ratio)
     # The only device-to-host transfer: the sizes every tensor shape below depends on.
-    sizes = torch.stack([roi_h, roi_w, grid_h.to(roi_h.dtype), grid_w.to(roi_h.dtype)], dim=1)
+    sizes = torch.stack([roi_h, roi_w, grid_h.to(roi_h.dtype), grid_w.to(roi_h.dtype), heights, widths], dim=1)
     bounds = torch.stack([batch_index.min(), batch_index.max()]).to(sizes.dtype)
     host = torch.cat([bounds, sizes.flatten()]).cpu().numpy().astype(np.float64)
     if host[0] < 0 or host[1] >= num_images:
-        raise ValueError(f"RoI batch indices must lie in [0, {num_images}), got {batch_index.unique().tolist()}")
-    host_roi_h, host_roi_w, host_grid_h, host_grid_w = np.nan_to_num(host[2:].reshape(-1, 4)).T
-    rows = _axis_samples(y0, roi_h, out_h, height, grid_h, max(int(host_grid_h.max()), 1))
-    cols = _axis_samples(x0, roi_w, out_w, width, grid_w, max(int(host_grid_w.max()), 1))
-    window_h, window_w = _window_bound(host_roi_h, height), _window_bound(host_roi_w, width)
-    chunks = [
-        _Chunk.build(index.to(input.device), batch_index, rows, cols, height, width, int(h), int(w))
-        for index, h, w in _plan_chunks(window_h, window_w, channels, max_chunk_elements)
-    ]
+        raise ValueError(f"RoI batch indices must lie in [0, {num_images}), got [{int(host[0])}, {int(host[1])}]")
+    host_roi_h, host_roi_w, host_grid_h, host_grid_w, host_h, host_w = np.nan_to_num(host[2:].reshape(-1, 6)).T
+    rows = _axis_samples(y0, roi_h, out_h, heights, grid_h, max(int(host_grid_h.max()), 1))
+    cols = _axis_samples(x0, roi_w, out_w, widths, grid_w, max(int(host_grid_w.max()), 1))
+    window_h, window_w = _window_bound(host_roi_h, host_h), _window_bound(host_roi_w, host_w)
+    # where each (level, image) map starts in the channels-last concatenation of all levels
+    pixels = torch.tensor([m.shape[2] * m.shape[3] for m in inputs], device=device)
+    level_start = torch.cumsum(pixels * num_images, 0) - pixels * num_images
+    map_start = level_start[level] + batch_index * pixels[level]
+    plan = _plan_chunks(window_h, window_w, channels, max_chunk_elements)
+    order = torch.from_numpy(np.concatenate([index for index, _, _ in plan])).to(device)  # one upload
+    chunks, begin = [], 0
+    for index, h, w in plan:
+        chunk = order[begin : begin + len(index)]
+        chunks.append(_Chunk.build(chunk, map_start, rows, cols, heights, widths, int(h), int(w)))
+        begin += len(index)
     # In compute_dtype under autocast too (as torchvision's autocast rule does): autocast would run
     # the pooling matmuls in bf16/fp16 and write them into the float32 output.
-    with autocast_off(input.device.type):
-        pooled = _RoIAlignFunction.apply(input, chunks, (num_rois, out_h, out_w), compute_dtype)
+    with autocast_off(device.type):
+        pooled = _RoIAlignFunction.apply(chunks, (num_rois, out_h, out_w), compute_dtype, *inputs)
     return pooled.to(out_dtype)
 
 
@@ -152,17 +189,21 @@ def _grid(roi_size: Tensor, bins: int, sampling_ratio: int) -> Tensor:
     return torch.ceil(roi_size / bins).long().clamp(min=0)
 
 
-def _window_bound(roi_size: np.ndarray, size: int) -> np.ndarray:
+def _window_bound(roi_size: np.ndarray, size: np.ndarray) -> np.ndarray:
     """Upper bound of the feature rows an RoI's taps touch, from its size alone (host side).
 
     Samples lie strictly inside ``[start, start + roi_size]`` and each takes its floor and the
     next row, so at most ``ceil(roi_size) + 2`` rows, and never more than the map has.
     """
-    return np.clip(np.ceil(np.maximum(roi_size, 0.0)) + 2, 1, size)
+    return np.clip(np.ceil(np.maximum(roi_size, 0.0)) + 2, 1, np.maximum(size, 1))
 
 
-def _axis_samples(start: Tensor, roi_size: Tensor, bins: int, size: int, grid: Tensor, max_grid: int) -> _AxisSamples:
-    """Sampling positions along one axis and their two bilinear taps (torchvision's rules)."""
+def _axis_samples(
+    start: Tensor, roi_size: Tensor, bins: int, sizes: Tensor, grid: Tensor, max_grid: int
+) -> _AxisSamples:
+    """Sampling positions along one axis and their two bilinear taps (torchvision's rules);
+    ``sizes`` (K,) is the length of that axis in each RoI's map."""
+    size = sizes[:, None, None]
     bin_size = roi_size / bins
     grid_f = grid.clamp(min=1).to(start.dtype)[:, None, None]
     bin_index = torch.arange(bins, device=start.device, dtype=start.dtype)[None, :, None]
@@ -176,7 +217,7 @@ def _axis_samples(start: Tensor, roi_size: Tensor, bins: int, size: int, grid: T
     coord = coord.clamp(min=0.0)
     low = coord.floor().long()  # coord >= 0, so floor equals C's int() truncation
     at_edge = low >= size - 1
-    low = low.clamp(max=size - 1)
+    low = torch.minimum(low, size - 1)
     high = torch.where(at_edge, low, low + 1)
     frac = torch.where(at_edge, torch.zeros_like(coord), coord - low.to(coord.dtype))
     scale = valid.to(coord.dtype) / grid_f
@@ -196,13 +237,16 @@ def _axis_samples(start: Tensor, roi_size: Tensor, bins: int, size: int, grid: T
 
 def _plan_chunks(
     heights: np.ndarray, widths: np.ndarray, channels: int, max_elements: int
-) -> list[tuple[Tensor, int, int]]:
+) -> list[tuple[np.ndarray, int, int]]:
     """Group RoIs whose windows have similar height and width (geometric buckets), then
     split each group into chunks whose padded gather fits ``max_elements``.
 
     Bucketing each axis separately bounds the padding waste (tall and wide windows are
     never padded to each other's size) with a few dozen chunks in practice.
     """
+    padded = len(heights) * heights.max() * widths.max()
+    if channels * padded <= max_elements and padded <= max(_PAD_WASTE * (heights * widths).sum(), _SMALL_CHUNK):
+        return [(np.arange(len(heights)), heights.max(), widths.max())]  # one chunk: padding costs little
     step = np.log(_BUCKET_GROWTH)
     buckets = np.ceil(np.log(heights) / step) * 4096 + np.ceil(np.log(widths) / step)
     order = np.argsort(buckets, kind="stable")
@@ -212,8 +256,7 @@ def _plan_chunks(
         padded_cost = channels * int(heights[group].max()) * int(widths[group].max())
         size = max(1, max_elements // max(padded_cost, 1))
         chunks += [
-            (torch.from_numpy(part), heights[part].max(), widths[part].max())
-            for part in np.split(group, range(size, len(group), size))
+            (part, heights[part].max(), widths[part].max()) for part in np.split(group, range(size, len(group), size))
         ]
     return chunks
 
@@ -230,8 +273,7 @@ class _Chunk:
     """RoIs pooled together: their window pixels and the two axis matrices."""
 
     rois: Tensor  # (k,) positions in the output
-    batch: Tensor  # (k,) image of each RoI
-    pixel: Tensor  # (k, window_h, window_w) pixel index within the image (row * W + col)
+    pixel: Tensor  # (k, window_h, window_w) row of each window pixel in the channels-last levels
     row_matrix: Tensor  # (k, out_h, window_h)
     col_matrix: Tensor  # (k, out_w, window_w)
 
@@ -239,40 +281,49 @@ class _Chunk:
     def build(
         cls,
         rois: Tensor,
-        batch: Tensor,
+        map_start: Tensor,
         rows: _AxisSamples,
         cols: _AxisSamples,
-        height: int,
-        width: int,
+        heights: Tensor,
+        widths: Tensor,
         window_h: int,
         window_w: int,
     ):
-        """``window_h``/``window_w``: bounds of the chunk's windows (host ints, see ``_window_bound``)."""
+        """``map_start`` (K,): first row of each RoI's (level, image) map; ``heights``/``widths`` (K,)
+        that map's size; ``window_h``/``window_w``: bounds of the chunk's windows (host ints,
+        see ``_window_bound``)."""
         rows, cols = rows.take(rois), cols.take(rois)
         device = rois.device
-        # Rows/columns past the image edge only occur where the matrices are zero; clamp them in.
-        row_ids = (rows.start[:, None] + torch.arange(window_h, device=device)).clamp(max=height - 1)
-        col_ids = (cols.start[:, None] + torch.arange(window_w, device=device)).clamp(max=width - 1)
-        pixel = row_ids[:, :, None] * width + col_ids[:, None, :]
-        return cls(rois, batch[rois], pixel, _axis_matrix(rows, window_h), _axis_matrix(cols, window_w))
+        height, width = heights[rois, None], widths[rois, None]
+        # Rows/columns past the map's edge only occur where the matrices are zero; clamp them in.
+        row_ids = torch.minimum(rows.start[:, None] + torch.arange(window_h, device=device), height - 1)
+        col_ids = torch.minimum(cols.start[:, None] + torch.arange(window_w, device=device), width - 1)
+        pixel = map_start[rois, None, None] + row_ids[:, :, None] * width[:, :, None] + col_ids[:, None, :]
+        return cls(rois, pixel, _axis_matrix(rows, window_h), _axis_matrix(cols, window_w))
+
+
+def _channels_last(inputs: Sequence[Tensor]) -> Tensor:
+    """All maps (N, C, H_l, W_l) as one (sum_l N H_l W_l, C) table of pixel rows."""
+    rows = [m.permute(0, 2, 3, 1).reshape(-1, m.shape[1]) for m in inputs]
+    return rows[0] if len(rows) == 1 else torch.cat(rows)
 
 
 class _RoIAlignFunction(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, input: Tensor, chunks: list[_Chunk], out_shape: tuple[int, int, int], dtype: torch.dtype):
-        num_images, channels, height, width = input.shape
+    def forward(ctx, chunks: list[_Chunk], out_shape: tuple[int, int, int], dtype: torch.dtype, *inputs: Tensor):
+        channels = inputs[0].shape[1]
         num_rois, out_h, out_w = out_shape
-        flat_input = input.flatten(2)  # (N, C, H*W): a view, gathered from below
-        pooled = torch.empty((num_rois, out_h, out_w, channels), dtype=dtype, device=input.device)
+        table = _channels_last(inputs)
+        pooled = torch.empty((num_rois, out_h, out_w, channels), dtype=dtype, device=table.device)
         for chunk in chunks:
             k, window_h, window_w = chunk.pixel.shape
-            window = flat_input[chunk.batch[:, None, None], :, chunk.pixel].to(dtype)  # (k, wh, ww, C)
+            window = table[chunk.pixel].to(dtype)  # (k, wh, ww, C)
             # Two batched matmuls (rows, then columns): ~3x faster than the equivalent einsum on CPU.
             row_pooled = torch.matmul(chunk.row_matrix, window.reshape(k, window_h, window_w * channels))
             pooled[chunk.rois] = torch.matmul(chunk.col_matrix[:, None], row_pooled.view(k, out_h, window_w, channels))
         ctx.chunks = chunks
-        ctx.input_shape = input.shape
-        ctx.input_dtype = input.dtype
+        ctx.input_shapes = [m.shape for m in inputs]
+        ctx.input_dtype = inputs[0].dtype
         return pooled.permute(0, 3, 1, 2).contiguous()
 
     @staticmethod
@@ -282,14 +333,18 @@ class _RoIAlignFunction(torch.autograd.Function):
 
     @staticmethod
     def _backward(ctx, grad_output: Tensor):
-        num_images, channels, height, width = ctx.input_shape
+        channels = ctx.input_shapes[0][1]
         grad = grad_output.permute(0, 2, 3, 1)  # (K, out_h, out_w, C)
-        grad_input = grad.new_zeros((num_images * height * width, channels))  # channels-last rows
+        total = sum(n * h * w for n, _, h, w in ctx.input_shapes)
+        grad_table = grad.new_zeros((total, channels))  # channels-last rows of all levels
         for chunk in ctx.chunks:
             k = chunk.pixel.shape[0]
             by_column = torch.matmul(chunk.col_matrix.transpose(1, 2)[:, None], grad[chunk.rois])  # (k, out_h, ww, C)
             window = torch.matmul(chunk.row_matrix.transpose(1, 2), by_column.reshape(k, by_column.shape[1], -1))
-            target = chunk.batch[:, None, None] * (height * width) + chunk.pixel
-            grad_input.index_add_(0, target.reshape(-1), window.reshape(-1, channels))
-        grad_input = grad_input.view(num_images, height, width, channels).permute(0, 3, 1, 2)
-        return grad_input.to(ctx.input_dtype).contiguous(), None, None, None
+            grad_table.index_add_(0, chunk.pixel.reshape(-1), window.reshape(-1, channels))
+        grads, start = [], 0
+        for n, _, h, w in ctx.input_shapes:
+            part = grad_table[start : start + n * h * w].view(n, h, w, channels).permute(0, 3, 1, 2)
+            grads.append(part.to(ctx.input_dtype).contiguous())
+            start += n * h * w
+        return None, None, None, *grads

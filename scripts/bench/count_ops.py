@@ -1,0 +1,108 @@
+"""Ops and host syncs of one ``usl-train`` step: what grows with objects and views, and where.
+
+    python scripts/bench/count_ops.py --config tiny                         # 4 images x 2 objects x 3 views, 128²
+    python scripts/bench/count_ops.py --config hypersim --size 192 256 --objects 20   # 2 images x 20 x 5
+    python scripts/bench/count_ops.py --config tiny --data /data/scene_shapes_small  # real records
+    python scripts/bench/count_ops.py --config tiny --cpu-steps 20         # and CPU seconds per step
+    python scripts/bench/count_ops.py --config tiny --predict detections   # usl-predict's model call
+
+One step of the trainer's own ``TrainStep`` (forward, backward, clipping, guard, optimizer) after
+``--warmup`` steps, counted with ``usl.utils.op_count``: ATen ops dispatched, host syncs by kind (the
+points where a CUDA run waits for the device), and the source lines causing most of each. Counts are
+deterministic, so two commits compare exactly; ``--cpu-steps`` adds the median process CPU time of
+that many uncounted steps (compare commits in one run, alternating, with OMP_NUM_THREADS=1).
+``--predict MODE`` counts one ``USLModel.predict`` call on the batch's input views instead (what
+usl-predict and usl-eval run per batch), with the trained-from-scratch weights of the step.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+from pathlib import Path
+
+import torch
+
+from usl.config import load_config
+from usl.data import CategoryIndex, MultiViewDataset, SampleKey
+from usl.engine.synthetic import synthetic_config, synthetic_sample
+from usl.engine.distributed import DistInfo
+from usl.engine.train import fill_dataset_fields, seed_everything
+from usl.engine.train_step import TrainStep
+from usl.records import RecordsDataset
+from usl.utils.op_count import count_ops, format_report
+
+ROOT = Path(__file__).resolve().parents[2]
+
+SIZE = {"tiny": (128, 128), "tiny_long": (128, 128), "hypersim": (192, 256), "scannet": (242, 324)}
+OBJECTS = {"tiny": 2, "tiny_long": 2, "hypersim": 20, "scannet": 8}
+
+
+def build_batches(args: argparse.Namespace) -> tuple[TrainStep, list]:
+    overrides = ([f"train.batch_size={args.batch_size}"] if args.batch_size else []) + args.overrides
+    overrides += [f"data.num_views={args.views}"] if args.views else []
+    if args.data:
+        cfg = load_config(args.config, overrides)
+        records = RecordsDataset(args.data, cfg.data.train_split)
+        fill_dataset_fields(cfg, records)
+    else:
+        cfg, records = synthetic_config(args.config, overrides), None
+    seed_everything(cfg.train.seed, 0)
+    step = TrainStep(cfg, DistInfo(0, 1, 0, torch.device(args.device)))
+    size = cfg.train.batch_size
+    if records is not None:
+        dataset = MultiViewDataset(records, cfg.data, CategoryIndex(records.categories), cfg.train.seed)
+        pool = [dataset[SampleKey(i % len(dataset), i // len(dataset))] for i in range(2 * size)]
+    else:
+        height, width = args.size or SIZE.get(args.config, (192, 256))
+        objects = args.objects or OBJECTS.get(args.config, 10)
+        classes = len(cfg.model.categories)
+        pool = [synthetic_sample(i, height, width, objects, cfg.data.num_views, classes) for i in range(2 * size)]
+    return step, [pool[:size], pool[size:]]
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--config", default="tiny")
+    p.add_argument("--device", default="cpu")
+    p.add_argument("--data", help="real records folder (default: synthetic batches)")
+    p.add_argument("--batch-size", type=int, default=0, help="default: the recipe's train.batch_size")
+    p.add_argument("--size", type=int, nargs=2, metavar=("H", "W"), help="synthetic image size")
+    p.add_argument("--objects", type=int, help="synthetic objects per input view")
+    p.add_argument("--views", type=int, help="views per sample (default: the recipe's data.num_views)")
+    p.add_argument("--warmup", type=int, default=2)
+    p.add_argument("--top", type=int, default=15, help="source lines listed")
+    p.add_argument("--cpu-steps", type=int, default=0, help="also time this many uncounted steps")
+    p.add_argument("--predict", choices=("gt_boxes", "detections"), help="count inference instead of a step")
+    p.add_argument("overrides", nargs="*", help="config overrides key=value")
+    args = p.parse_args()
+    torch.set_num_threads(1)
+    step, batches = build_batches(args)
+    for iteration in range(args.warmup):
+        step(batches[iteration % 2])
+    frames = [sample.frame for sample in batches[args.warmup % 2]]
+    with count_ops(ROOT) as count:
+        if args.predict:
+            with torch.no_grad():
+                step.model.predict(frames, args.predict)
+        else:
+            step(batches[args.warmup % 2])
+    cfg = step.cfg
+    print(
+        f"config={args.config} images={cfg.train.batch_size} objects={args.objects or 'data'} "
+        f"views={cfg.data.num_views} data={'records' if args.data else 'synthetic'} "
+        f"counted={'predict ' + args.predict if args.predict else 'training step'}"
+    )
+    print(format_report(count, args.top))
+    if args.cpu_steps:
+        cpu = []
+        for iteration in range(args.cpu_steps):
+            start = time.process_time()
+            step(batches[iteration % 2])
+            cpu.append(time.process_time() - start)
+        print(f"CPU seconds/step (median of {len(cpu)}, 1 thread): {statistics.median(cpu):.3f}")
+
+
+if __name__ == "__main__":
+    main()
