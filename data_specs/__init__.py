@@ -31,3 +31,9 @@ def load_dataset_spec(name: str) -> dict[str, Any]:
     if not path.exists():
         raise ValueError(f"unknown dataset spec {name!r}; known: {', '.join(DATASETS)}")
     return yaml.safe_load(path.read_text())
+
+
+@lru_cache(maxsize=None)
+def coco_category_ids() -> tuple[int, ...]:
+    """COCO's 80 category ids in the contiguous order COCO-trained segmenters number their classes."""
+    return tuple(int(c["id"]) for c in yaml.safe_load((SPEC_DIR / "coco.yaml").read_text())["categories"])

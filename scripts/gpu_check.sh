@@ -1,10 +1,11 @@
 #!/usr/bin/env bash
-# One prepared check for a machine with a CUDA GPU (never part of CI), within 8 minutes:
+# One prepared check for a machine with a CUDA GPU (never part of CI), within 9 minutes:
 #   1. the CUDA tests            (tests that skip themselves without a GPU)
 #   2. bench/rasterizer.py       --device cuda
 #   3. bench/train.py            hypersim recipe at the paper's 768x1024, 2 images x 5 views per GPU,
 #                                against the paper's 16 images per 1.1 s on 8 V100s (1.82 images/s per GPU)
 #   4. bench/predict.py          both recipes and modes at the paper's sizes, against 8 / 3 fps (V100)
+#   5. bench/segment.py          usl-segment's PointRend on 640x480 frames (random weights), frames/s
 # and one summary table. Each step has its own time limit, so a hung step costs only its budget;
 # a failed step is reported and the others still run. Logs go to $USL_GPU_CHECK_LOGS (default a
 # temporary folder). Exit status: 0 if every step passed.
@@ -25,7 +26,8 @@ if [[ "${1:-}" == "--cpu-smoke" ]]; then
   RASTER=(scripts/bench/rasterizer.py --device cpu --repeats 1 --threads 1)
   TRAIN=(scripts/bench/train.py --config tiny --device cpu --iters 1 --warmup 0 --size 64 64 --objects 2 --threads 1)
   PREDICT=(scripts/bench/predict.py --device cpu --config scene_shapes --size 96 128 --objects 2 --images 1 --warmup 0 --threads 1)
-  LIMITS=(300 300 300 300)
+  SEGMENT=(scripts/bench/segment.py --device cpu --frames 1 --size 96 72 --threads 1 --score-thresholds 0.5)
+  LIMITS=(300 300 300 300 300)
 else
   MODE=cuda
   if ! "$PYTHON" -c "import torch, sys; sys.exit(0 if torch.cuda.is_available() else 1)"; then
@@ -37,10 +39,11 @@ else
   RASTER=(scripts/bench/rasterizer.py --device cuda --repeats 3)
   TRAIN=(scripts/bench/train.py --config hypersim --device cuda --iters 5 --warmup 2)
   PREDICT=(scripts/bench/predict.py --device cuda --images 20 --warmup 2)
-  LIMITS=(120 60 150 120)  # seconds; 7.5 minutes in all
+  SEGMENT=(scripts/bench/segment.py --device cuda --frames 20 --threads 1)
+  LIMITS=(120 60 150 120 60)  # seconds; 8.5 minutes in all
 fi
 
-NAMES=("cuda tests" "rasterizer" "train hypersim" "predict")
+NAMES=("cuda tests" "rasterizer" "train hypersim" "predict" "segment")
 STATUS=()
 SECONDS_TAKEN=()
 FIGURES=()
@@ -50,7 +53,7 @@ run_step() {  # index, command...
   shift
   local log="$LOGS/step$index.log"
   local start=$SECONDS
-  echo "gpu_check: [$((index + 1))/4] ${NAMES[$index]}: $PYTHON $* (limit ${LIMITS[$index]} s)"
+  echo "gpu_check: [$((index + 1))/5] ${NAMES[$index]}: $PYTHON $* (limit ${LIMITS[$index]} s)"
   timeout --kill-after=10 "${LIMITS[$index]}" "$PYTHON" "$@" >"$log" 2>&1
   local rc=$?
   SECONDS_TAKEN[$index]=$((SECONDS - start))
@@ -80,12 +83,14 @@ else
 fi
 run_step 3 "${PREDICT[@]}"
 FIGURES[3]="$(grep -E '^ +(scene_shapes|hypersim|tiny|scannet) ' "$LOGS/step3.log" | awk '{printf "%s/%s %s fps; ", $1, $2, $4}')"
+run_step 4 "${SEGMENT[@]}"
+FIGURES[4]="$(awk '$1 ~ /^[0-9]+$/ {printf "score>%s: %s frames/s (%s dets); ", $2, $4, $3}' "$LOGS/step4.log")"
 
 echo
 echo "gpu_check summary ($MODE; logs in $LOGS)"
 printf '%-16s %-14s %7s  %s\n' step status seconds "key figures"
 failed=0
-for index in 0 1 2 3; do
+for index in 0 1 2 3 4; do
   printf '%-16s %-14s %7s  %s\n' "${NAMES[$index]}" "${STATUS[$index]}" "${SECONDS_TAKEN[$index]}" "${FIGURES[$index]:-}"
   [[ "${STATUS[$index]}" == ok ]] || failed=1
 done

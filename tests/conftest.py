@@ -1,5 +1,8 @@
 """Fixtures shared by every test folder."""
 
+import os
+from pathlib import Path
+
 import pytest
 import torch
 
@@ -21,3 +24,32 @@ def single_thread():
 def synthetic_root(tmp_path_factory):
     """Records of four train scenes and one val scene of two cuboids, six views each, 64 x 64."""
     return build_synthetic_records(tmp_path_factory.mktemp("synthetic") / "records")
+
+
+@pytest.fixture(scope="session")
+def detectron2_weights(tmp_path_factory):
+    """Seeded random weights of detectron2's PointRend and Mask R-CNN R50-FPN in the model zoo's layout
+    (240 MB each: written once per session): ``{model: (path, checksum)}``."""
+    from tests.model.detectron2_fixtures import MASK_RCNN, ORACLE_SEED, POINTREND, checksum, write_random_checkpoint
+
+    folder = tmp_path_factory.mktemp("detectron2_weights")
+    written = {}
+    for model in (POINTREND, MASK_RCNN):
+        path = folder / f"{model}.pkl"
+        written[model] = (path, checksum(write_random_checkpoint(path, model, ORACLE_SEED)))
+    return written
+
+
+@pytest.fixture(scope="module")
+def local_ray():
+    """A local two-CPU Ray instance whose workers import the test helpers (tests.*) from the repository root."""
+    ray = pytest.importorskip("ray")
+    path = os.pathsep.join([str(Path(__file__).parents[1]), os.environ.get("PYTHONPATH", "")])
+    ray.init(
+        num_cpus=2,
+        include_dashboard=False,
+        log_to_driver=False,
+        runtime_env={"env_vars": {"PYTHONPATH": path, "OMP_NUM_THREADS": "1"}},
+    )
+    yield
+    ray.shutdown()

@@ -163,6 +163,8 @@ RUN_OPTIONS = {
     "ray_address",
     "skip_bad_scenes",
     "claim_timeout",
+    "device",  # where a model runs (usl-convert-scannet --masks model)
+    "segment_batch_size",
 }
 
 

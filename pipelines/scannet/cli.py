@@ -6,6 +6,8 @@ from a detections file (COCO results, e.g. PointRend run with detectron2) or fro
 instance-filt/label-filt images. See pipelines/scannet/README.md for the file formats.
 
     usl-convert-scannet --out data/scannet --scans-root /data/scannet/scans --splits-dir /data/scannet/splits \\
+        --masks model --weights model_final_edd263.pkl --workers 8
+    usl-convert-scannet --out data/scannet --scans-root ... --splits-dir ... \\
         --detections pointrend_results.json --detection-images images.json --workers 8
     usl-convert-scannet --out data/scannet_gt --scans-root ... --splits-dir ... --masks scannet-labels \\
         --label-map scannetv2-labels.combined.tsv --tracker source-ids --resolution 320x240
@@ -30,7 +32,7 @@ from pipelines.common import (
     run_build,
     scratch_dir,
 )
-from usl.cli.common import deprecated_alias, make_parser, resolution
+from usl.cli.common import DEVICE_CHOICES, deprecated_alias, make_parser, resolution
 from usl.errors import UslError
 from usl.records.names import check_name
 
@@ -58,9 +60,27 @@ def parser(spec: dict) -> argparse.ArgumentParser:
     masks = p.add_argument_group("mask source")
     masks.add_argument(
         "--masks",
-        choices=("detections", "scannet-labels"),
+        choices=("detections", "model", "scannet-labels"),
         default="detections",
-        help="detections: a 2D segmenter's COCO results; scannet-labels: ScanNet's own instance images",
+        help="detections: a 2D segmenter's COCO results; model: run usl's segmenter on the frames (--weights); "
+        "scannet-labels: ScanNet's own instance images",
+    )
+    masks.add_argument(
+        "--weights",
+        type=Path,
+        help="--masks model: detectron2 PointRend / Mask R-CNN .pkl or torchvision Mask R-CNN .pth (COCO)",
+    )
+    masks.add_argument(
+        "--device", choices=DEVICE_CHOICES, default="auto", help="--masks model: where the segmenter runs"
+    )
+    masks.add_argument("--segment-batch-size", type=int, default=1, help="--masks model: frames per forward pass")
+    masks.add_argument(
+        "--segment-size",
+        type=int,
+        nargs=2,
+        default=(800, 1333),
+        metavar=("MIN", "MAX"),
+        help="--masks model: frames are resized to this shortest edge, longest at most MAX (detectron2's test size)",
     )
     masks.add_argument("--detections", nargs="+", help="COCO results JSON file(s) from the segmenter")
     masks.add_argument("--detection-images", type=Path, help="COCO images JSON mapping image_id to scan frames")
@@ -182,6 +202,9 @@ def mask_source(
     from .scannet_labels import ScanNetLabelsSource
 
     categories = spec["categories"]
+    coco_to_category = tuple((int(c["coco_id"]), int(c["id"])) for c in categories)
+    if args.masks == "model":
+        return model_source(args, coco_to_category), model_fingerprint(args), None
     if args.masks == "scannet-labels":
         if args.label_map is None:
             raise UslError("--masks scannet-labels needs --label-map scannetv2-labels.combined.tsv")
@@ -195,11 +218,46 @@ def mask_source(
     for path in files:
         if not path.is_file():
             raise UslError(f"{path}: no such file")
-    source = DetectionsFileSource(
-        str(cache), tuple((int(c["coco_id"]), int(c["id"])) for c in categories), args.category_ids == "contiguous"
-    )
+    source = DetectionsFileSource(str(cache), coco_to_category, args.category_ids == "contiguous")
     stamps = [[str(p), p.stat().st_size, p.stat().st_mtime_ns] for p in files]
     return source, {"detection_files": stamps}, partial(split_detections, results, args.detection_images, scenes, cache)
+
+
+def model_source(args: argparse.Namespace, coco_to_category: tuple[tuple[int, int], ...]) -> MaskSource:
+    """``--masks model``: the segmenter's description; each build worker loads it when a scan needs it."""
+    from usl.cli.common import resolve_device
+    from usl.model.segmenter import SegmenterConfig
+
+    from .model_masks import SegmenterSource, segments_dir
+
+    if args.weights is None:
+        raise UslError("--masks model needs --weights FILE (detectron2 PointRend .pkl, e.g. model_final_edd263.pkl)")
+    if not args.weights.is_file():
+        raise UslError(f"{args.weights}: no such file")
+    if args.tracker == "source-ids":
+        raise UslError("--tracker source-ids needs --masks scannet-labels (detectors give no identities)")
+    min_size, max_size = args.segment_size
+    if min(min_size, max_size, args.segment_batch_size) < 1:
+        raise UslError("--segment-size and --segment-batch-size must be >= 1")
+    return SegmenterSource(
+        str(args.weights.resolve()),
+        str(segments_dir(args.out)),
+        coco_to_category,
+        args.stride,
+        args.min_score,
+        # detections below --min-score are dropped anyway: the box head drops them before NMS (which
+        # keeps the same better ones) and the mask head never refines them
+        SegmenterConfig(min_size=min_size, max_size=max_size, score_threshold=max(args.min_score, 0.05)),
+        resolve_device(args.device),
+        args.segment_batch_size,
+    )
+
+
+def model_fingerprint(args: argparse.Namespace) -> dict:
+    """The weights file (path, size, modification time) and the segmenter's resize: cached detections
+    belong to the build that made them. Device and batch size change no result."""
+    stat = args.weights.stat()
+    return {"segmenter": {"weights": [str(args.weights.resolve()), stat.st_size, stat.st_mtime_ns]}}
 
 
 def plan_shards(

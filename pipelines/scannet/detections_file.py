@@ -26,13 +26,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterable
 
+from data_specs import coco_category_ids
 from usl.errors import UslError
 
 from .masks import Detection, FrameView, ScanInfo, checked_rle
 
-# COCO's 80 thing categories have ids 1..90 with these gaps; detectron2's contiguous index k is the k-th.
-COCO_ID_GAPS = frozenset({12, 26, 29, 30, 45, 66, 68, 69, 71, 83})
-COCO_CATEGORY_IDS = tuple(i for i in range(1, 91) if i not in COCO_ID_GAPS)
 FILE_NAME = re.compile(r"(?:^|[\\/])(scene\d{4}_\d{2})[\\/](?:.*[\\/])?(\d+)\.(?:jpe?g|png)$", re.IGNORECASE)
 SOURCES_FILE = "sources.json"
 
@@ -176,10 +174,10 @@ class DetectionsFileSource:
         if not isinstance(category_id, int):
             raise UslError(f"{where}: category_id {category_id!r} is not an integer")
         if self.contiguous_ids:
-            if not 0 <= category_id < len(COCO_CATEGORY_IDS):
+            if not 0 <= category_id < len(coco_category_ids()):
                 raise UslError(f"{where}: contiguous category index {category_id} is outside 0..79")
-            return COCO_CATEGORY_IDS[category_id]
-        if category_id not in COCO_CATEGORY_IDS:
+            return coco_category_ids()[category_id]
+        if category_id not in coco_category_ids():
             hint = " (0-based class indices? use --category-ids contiguous)" if category_id == 0 else ""
             raise UslError(f"{where}: category_id {category_id} is not a COCO category id{hint}")
         return category_id

@@ -24,6 +24,7 @@ COMMANDS = {
     "usl-train": "usl.cli.train",
     "usl-eval": "usl.cli.evaluate",
     "usl-predict": "usl.cli.predict",
+    "usl-segment": "usl.cli.segment",
 }
 # One fresh interpreter runs every --help in turn and notes after each whether torch is loaded: as
 # none may load it, the first that does is the culprit (and one process keeps the test fast).

@@ -34,3 +34,21 @@ def test_detector_trains_and_predicts_on_cuda():
     with torch.no_grad():
         outputs = detector.eval()(images.cuda())
     assert all(v.is_cuda for output in outputs for v in output.values())
+
+
+def test_point_rend_masks_agree_with_cpu():
+    from tests.model.test_point_rend import tiny_point_rend
+
+    torch.manual_seed(0)
+    detector = MaskRCNN(3, tiny_point_rend()).eval()
+    torch.nn.init.normal_(detector.roi_heads.mask_head.point_head.predictor.weight, std=1.0)
+    features = {"p2": torch.randn(2, 32, 16, 16)}
+    boxes = [torch.tensor([[4.0, 6.0, 40.0, 50.0]]), torch.tensor([[10.0, 10.0, 60.0, 30.0], [0.0, 0.0, 64, 64]])]
+    classes = torch.tensor([0, 2, 1])
+    head = detector.roi_heads.mask_head
+    with torch.no_grad():
+        expected = head.predict(features, boxes, classes)
+        actual = head.cuda().predict({"p2": features["p2"].cuda()}, [b.cuda() for b in boxes], classes.cuda())
+    # the 784 most uncertain cells may differ where logits tie; nearly all cells must agree
+    close = torch.isclose(actual.cpu(), expected, atol=1e-3, rtol=1e-3)
+    assert actual.is_cuda and close.float().mean() > 0.999

@@ -1,29 +1,11 @@
 """``--executor ray`` runs the same shard plan as Ray tasks and writes the same bytes as local."""
 
-import os
-from pathlib import Path
-
 import pytest
 
 from tests.records.fake_scenes import SPEC, build_fake_scene, build_streamed_fake_scene
 from pipelines.common import BuildOptions, ShardPlan, run_build
 
-ray = pytest.importorskip("ray")
-REPO = Path(__file__).parents[2]
-
-
-@pytest.fixture(scope="module")
-def local_ray():
-    """A local two-CPU Ray instance whose workers import the test helpers (tests.records) from the repository root."""
-    path = os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")])
-    ray.init(
-        num_cpus=2,
-        include_dashboard=False,
-        log_to_driver=False,
-        runtime_env={"env_vars": {"PYTHONPATH": path, "OMP_NUM_THREADS": "1"}},
-    )
-    yield
-    ray.shutdown()
+pytest.importorskip("ray")
 
 
 def plans():

@@ -9,9 +9,8 @@ import numpy as np
 import pytest
 from pycocotools import mask as mask_utils
 
-from data_specs import load_dataset_spec
+from data_specs import coco_category_ids, load_dataset_spec
 from pipelines.scannet.detections_file import (
-    COCO_CATEGORY_IDS,
     DetectionsFileSource,
     frame_of_file_name,
     split_detections,
@@ -39,8 +38,8 @@ def test_frame_of_file_name(name, expected):
 
 
 def test_coco_contiguous_ids():
-    assert len(COCO_CATEGORY_IDS) == 80
-    assert COCO_CATEGORY_IDS[56] == 62 and COCO_CATEGORY_IDS[62] == 72  # detectron2: chair 56, tv 62
+    assert len(coco_category_ids()) == 80
+    assert coco_category_ids()[56] == 62 and coco_category_ids()[62] == 72  # detectron2: chair 56, tv 62
 
 
 def test_detections_reach_their_frames_with_dataset_categories(synthetic, tmp_path):

@@ -54,8 +54,33 @@ class MaskHeadConfig:
 
 
 @dataclass
+class PointRendConfig:
+    """PointRend's mask branch (Kirillov et al. 2020) as detectron2's ``pointrend_rcnn_R_50_FPN`` builds it.
+
+    A coarse head predicts ``coarse_resolution``-square logits per class from a regular grid of
+    features; the point head then re-predicts single points from fine features plus the coarse
+    logits. Inference starts from a regular grid and, ``subdivision_steps`` times, doubles the
+    resolution and re-predicts the ``subdivision_num_points`` most uncertain cells (7 -> 224).
+    """
+
+    in_feature: str = "p2"  # both heads read the finest FPN level
+    pooler_resolution: int = 14  # the coarse head's regular grid of samples per box
+    conv_dim: int = 256
+    num_fc: int = 2
+    fc_dim: int = 1024
+    coarse_resolution: int = 7
+    point_num_fc: int = 3
+    point_fc_dim: int = 256
+    train_num_points: int = 14 * 14
+    oversample_ratio: int = 3  # training: candidates per point (k in the paper)
+    importance_sample_ratio: float = 0.75  # training: share of points picked by uncertainty (beta)
+    subdivision_steps: int = 5
+    subdivision_num_points: int = 28 * 28
+
+
+@dataclass
 class ROIHeadsConfig:
-    name: str = "standard"  # key in ROI_HEADS
+    name: str = "standard"  # key in ROI_HEADS: "standard" (Mask R-CNN) | "point_rend"
     in_features: tuple[str, ...] = ("p2", "p3", "p4", "p5")
     batch_size_per_image: int = 512
     positive_fraction: float = 0.25
@@ -69,6 +94,7 @@ class ROIHeadsConfig:
     mask_threshold: float = 0.5  # pasted mask probabilities at or above it are foreground
     box_head: BoxHeadConfig = field(default_factory=BoxHeadConfig)
     mask_head: MaskHeadConfig = field(default_factory=MaskHeadConfig)
+    point_rend: PointRendConfig = field(default_factory=PointRendConfig)  # the mask branch of "point_rend"
 
 
 @dataclass
@@ -100,6 +126,11 @@ class DetectorConfig:
             ),
             roi_heads=ROIHeadsConfig(in_features=("res4",)),
         )
+
+    @classmethod
+    def point_rend(cls) -> "DetectorConfig":
+        """PointRend R50-FPN (detectron2's ``pointrend_rcnn_R_50_FPN_3x_coco``): Mask R-CNN with PointRend's mask branch."""
+        return cls(roi_heads=ROIHeadsConfig(name="point_rend"))
 
     @classmethod
     def tiny(cls) -> "DetectorConfig":

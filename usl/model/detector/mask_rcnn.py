@@ -69,6 +69,24 @@ class MaskRCNN(nn.Module):
             return {**rpn_losses, **roi_losses}
         return [self.instances_to_dict(d) for d in instances]
 
+    @torch.no_grad()
+    def detect(self, images: Tensor, image_sizes: Optional[Sequence[tuple[int, int]]] = None) -> list[Instances]:
+        """Eval detections per image with box-relative mask probabilities ``mask_probs`` (R, M, M), not pasted.
+
+        For callers that detect in resized images and paste the masks at another size.
+        """
+        if self.training:
+            raise RuntimeError("MaskRCNN.detect needs eval mode")
+        image_list = self.preprocess(images, image_sizes)
+        features = self.backbone(image_list.tensor)
+        proposals, _ = self.proposal_generator(image_list, features, None)
+        detections = self.roi_heads.forward_box(features, proposals)
+        if self.roi_heads.mask_on:
+            probabilities = self.roi_heads.mask_probabilities(features, detections)
+            for instances, probs in zip(detections, probabilities.split([len(d) for d in detections])):
+                instances.mask_probs = probs
+        return detections
+
     def targets_to_instances(
         self, targets: Sequence[dict[str, Tensor]], image_sizes: Sequence[tuple[int, int]]
     ) -> list[Instances]:

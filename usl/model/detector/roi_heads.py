@@ -19,6 +19,7 @@ from .box_head import FastRCNNFCHead, FastRCNNOutputLayers
 from .config import ROIHeadsConfig
 from .mask_head import MaskRCNNConvUpsampleHead, mask_rcnn_loss, mask_targets, paste_masks_in_image, select_class_masks
 from .matcher import Matcher, subsample_labels
+from .point_rend import PointRendMaskHead
 from .poolers import MultiScaleRoIAlign
 from .structures import Instances
 
@@ -50,9 +51,17 @@ class StandardROIHeads(nn.Module):
         self.box_predictor = FastRCNNOutputLayers(self.box_head.output_dim, num_classes, box_cfg)
         self.mask_on = cfg.mask_head.enabled
         if self.mask_on:
-            mask_cfg = cfg.mask_head
-            self.mask_pooler = self._pooler(mask_cfg.pooler_resolution, mask_cfg.pooler_sampling_ratio, strides)
-            self.mask_head = MaskRCNNConvUpsampleHead(channels, num_classes, mask_cfg.num_conv, mask_cfg.conv_dim)
+            self.build_mask_branch(input_shape)
+
+    def build_mask_branch(self, input_shape: Mapping[str, ShapeSpec]) -> None:
+        """Mask R-CNN's: RoIAlign per FPN level and a conv head with a 2x deconv (28 x 28 masks)."""
+        mask_cfg = self.cfg.mask_head
+        shapes = [input_shape[name] for name in self.cfg.in_features]
+        strides = [s.stride for s in shapes]
+        self.mask_pooler = self._pooler(mask_cfg.pooler_resolution, mask_cfg.pooler_sampling_ratio, strides)
+        self.mask_head = MaskRCNNConvUpsampleHead(
+            shapes[0].channels, self.num_classes, mask_cfg.num_conv, mask_cfg.conv_dim
+        )
 
     def _pooler(self, resolution: int, sampling_ratio: int, strides: list[int]) -> MultiScaleRoIAlign:
         cfg = self.cfg
@@ -126,26 +135,57 @@ class StandardROIHeads(nn.Module):
     def forward_mask(
         self, features: Mapping[str, Tensor], instances: list[Instances], targets: Optional[list[Instances]] = None
     ):
-        """Training: ``loss_mask`` on foreground proposals; eval: adds ``pred_masks`` (bool, H x W)."""
+        """Training: the mask losses on foreground proposals; eval: adds ``pred_masks`` (bool, H x W)."""
         if self.training:
-            foreground = [p[p.gt_index >= 0] for p in instances]
-            mask_logits = self.mask_head(self.mask_pooler(features, [p.proposal_boxes for p in foreground]))
-            resolution = mask_logits.shape[-1]
-            targets_per_box = [
-                mask_targets(t.gt_masks, p.gt_index, p.proposal_boxes, resolution)
-                for p, t in zip(foreground, targets)
-                if len(p)
-            ]
-            classes = torch.cat([p.gt_classes for p in foreground])
-            gt = torch.cat(targets_per_box) if targets_per_box else mask_logits.new_zeros((0, resolution, resolution))
-            return {"loss_mask": mask_rcnn_loss(mask_logits, classes, gt) * self.cfg.mask_head.loss_weight}
-        mask_logits = self.mask_head(self.mask_pooler(features, [d.pred_boxes for d in instances]))
-        probabilities = select_class_masks(mask_logits, torch.cat([d.pred_classes for d in instances]))
+            return self.mask_losses(features, [p[p.gt_index >= 0] for p in instances], targets)
+        probabilities = self.mask_probabilities(features, instances)
         for detections, probs in zip(instances, probabilities.split([len(d) for d in instances])):
             detections.pred_masks = paste_masks_in_image(
                 probs, detections.pred_boxes, detections.image_size, self.cfg.mask_threshold
             )
         return instances
+
+    def mask_losses(
+        self, features: Mapping[str, Tensor], foreground: list[Instances], targets: list[Instances]
+    ) -> dict[str, Tensor]:
+        """``loss_mask``: per-pixel cross-entropy of the 28 x 28 mask of each proposal's class."""
+        mask_logits = self.mask_head(self.mask_pooler(features, [p.proposal_boxes for p in foreground]))
+        resolution = mask_logits.shape[-1]
+        targets_per_box = [
+            mask_targets(t.gt_masks, p.gt_index, p.proposal_boxes, resolution)
+            for p, t in zip(foreground, targets)
+            if len(p)
+        ]
+        classes = torch.cat([p.gt_classes for p in foreground])
+        gt = torch.cat(targets_per_box) if targets_per_box else mask_logits.new_zeros((0, resolution, resolution))
+        return {"loss_mask": mask_rcnn_loss(mask_logits, classes, gt) * self.cfg.mask_head.loss_weight}
+
+    def mask_probabilities(self, features: Mapping[str, Tensor], detections: list[Instances]) -> Tensor:
+        """Box-relative foreground probabilities (R, M, M) of each detection's class, images concatenated."""
+        mask_logits = self.mask_head(self.mask_pooler(features, [d.pred_boxes for d in detections]))
+        return select_class_masks(mask_logits, torch.cat([d.pred_classes for d in detections]))
+
+
+@ROI_HEADS.register("point_rend")
+class PointRendROIHeads(StandardROIHeads):
+    """Mask R-CNN's box branch with PointRend's mask branch (:mod:`.point_rend`, 224 x 224 masks)."""
+
+    def build_mask_branch(self, input_shape: Mapping[str, ShapeSpec]) -> None:
+        cfg = self.cfg.point_rend
+        if cfg.in_feature not in input_shape:
+            raise ValueError(f"PointRend reads {cfg.in_feature!r}, the backbone has {sorted(input_shape)}")
+        shape = input_shape[cfg.in_feature]
+        self.mask_head = PointRendMaskHead(shape.channels, shape.stride, self.num_classes, cfg)
+
+    def mask_losses(
+        self, features: Mapping[str, Tensor], foreground: list[Instances], targets: list[Instances]
+    ) -> dict[str, Tensor]:
+        losses = self.mask_head.losses(features, foreground, targets)
+        return {name: value * self.cfg.mask_head.loss_weight for name, value in losses.items()}
+
+    def mask_probabilities(self, features: Mapping[str, Tensor], detections: list[Instances]) -> Tensor:
+        classes = torch.cat([d.pred_classes for d in detections])
+        return self.mask_head.predict(features, [d.pred_boxes for d in detections], classes).sigmoid()
 
 
 def build_roi_heads(cfg: ROIHeadsConfig, num_classes: int, input_shape: Mapping[str, ShapeSpec]) -> nn.Module:

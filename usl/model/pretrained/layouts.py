@@ -10,7 +10,9 @@ Each layout is a list of (regex, target) rules read off the upstream module defi
 * torchvision ImageNet ``resnet50``: our ResNet names exactly (plus ``fc``).
 * detectron2 ``GeneralizedRCNN`` (``detectron2/modeling``): ``backbone.bottom_up.{stem,res2..res5}``
   with ``convK.norm`` and ``shortcut``, ``backbone.fpn_{lateral,output}{2..5}``,
-  ``proposal_generator.rpn_head``, ``roi_heads.box_head.fc1/fc2``, ``roi_heads.mask_head``.
+  ``proposal_generator.rpn_head``, ``roi_heads.box_head.fc1/fc2``, ``roi_heads.mask_head``; PointRend
+  (``projects/PointRend``) has ``roi_heads.mask_head.coarse_head.{reduce_spatial_dim_conv,fc1,fc2,prediction}``
+  and ``roi_heads.mask_head.point_head.{fc1..3,predictor}`` instead of the conv mask head.
   Class layers already have our layout (background last in ``cls_score``, none in the others).
 * Caffe2 / MSRA ``R-50.pkl`` (names as ``detectron2/checkpoint/c2_model_loading.py`` reads them):
   ``conv1_w``, ``res_conv1_bn_{s,b}``, ``res{2..5}_{i}_branch{1,2a,2b,2c}_{w,bn_s,bn_b}``, ``fc1000``.
@@ -31,9 +33,17 @@ Tensor = torch.Tensor
 Target = Union[str, Callable[[re.Match], str], None]
 
 # Layers whose shape depends on the number of categories: re-initialised when they do not fit.
+# PointRend's point head reads the coarse logits of every class in each layer, so its layers all count.
 CLASS_SPECIFIC = frozenset(
     f"roi_heads.{layer}.{param}"
-    for layer in ("box_predictor.cls_score", "box_predictor.bbox_pred", "mask_head.predictor")
+    for layer in (
+        "box_predictor.cls_score",
+        "box_predictor.bbox_pred",
+        "mask_head.predictor",
+        "mask_head.coarse_head.predictor",
+        "mask_head.point_head.predictor",
+        *(f"mask_head.point_head.fcs.{i}" for i in range(3)),
+    )
     for param in ("weight", "bias")
 )
 CONV1 = "backbone.bottom_up.conv1.weight"
@@ -122,6 +132,11 @@ TORCHVISION_RESNET = Layout(
     stride_in_1x1=False,
 )
 
+# PointRend's heads: ``roi_heads.mask_head.{coarse,point}_head`` since detectron2 moved them into the mask
+# head, ``roi_heads.mask_{coarse,point}_head`` in older files, whose coarse FCs are ``coarse_mask_fc1/2``.
+_COARSE = r"roi_heads\.(?:mask_head\.coarse_head|mask_coarse_head)"
+_POINT = r"roi_heads\.(?:mask_head\.point_head|mask_point_head)"
+
 DETECTRON2_RCNN = Layout(
     name="detectron2 R-CNN (model zoo .pkl)",
     signature="backbone.bottom_up.stem.conv1.weight",
@@ -163,6 +178,14 @@ DETECTRON2_RCNN = Layout(
             lambda m: f"roi_heads.mask_head.convs.{int(m[1]) - 1}.{m[2]}",
         ),
         (r"roi_heads\.mask_head\.(deconv|predictor)\.(weight|bias)", r"roi_heads.mask_head.\1.\2"),
+        (rf"{_COARSE}\.reduce_spatial_dim_conv\.(weight|bias)", r"roi_heads.mask_head.coarse_head.conv.\1"),
+        (
+            rf"{_COARSE}\.(?:coarse_mask_)?fc(\d)\.(weight|bias)",
+            lambda m: f"roi_heads.mask_head.coarse_head.fcs.{int(m[1]) - 1}.{m[2]}",
+        ),
+        (rf"{_COARSE}\.prediction\.(weight|bias)", r"roi_heads.mask_head.coarse_head.predictor.\1"),
+        (rf"{_POINT}\.fc(\d)\.(weight|bias)", lambda m: f"roi_heads.mask_head.point_head.fcs.{int(m[1]) - 1}.{m[2]}"),
+        (rf"{_POINT}\.predictor\.(weight|bias)", r"roi_heads.mask_head.point_head.predictor.\1"),
     ),
     stride_in_1x1=True,
     caffe2_pixels=True,

@@ -69,9 +69,12 @@ class InitReport:
         return lines
 
 
-def init_detector(detector: nn.Module, path: Union[str, Path], fmt: str = "auto") -> InitReport:
-    """Copy a pretrained checkpoint into ``detector`` (in place) and say what went where."""
-    weights = read_weights(path, fmt)
+def init_detector(detector: nn.Module, path: Union[str, Path, WeightsFile], fmt: str = "auto") -> InitReport:
+    """Copy a pretrained checkpoint into ``detector`` (in place) and say what went where.
+
+    ``path`` may be a file already read with :func:`read_weights` (then ``fmt`` is its own).
+    """
+    weights = path if isinstance(path, WeightsFile) else read_weights(path, fmt)
     layout = _detect_layout(weights)
     _check_resnet_variant(detector, layout, weights.path)
     model = detector.state_dict()
