@@ -150,6 +150,7 @@ class ShapeHead(nn.Module):
         image_index = torch.repeat_interleave(
             torch.arange(len(boxes), device=flat_boxes.device),
             torch.tensor([len(b) for b in boxes], device=flat_boxes.device),
+            output_size=len(flat_boxes),
         )
         verts = self.sphere_verts.expand(len(flat_boxes), -1, -1)
         maps = [features[name] for name in self.cfg.features]
