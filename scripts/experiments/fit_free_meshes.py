@@ -37,7 +37,7 @@ from usl.evaluation.scene import EvalConfig
 from usl.evaluation.types import EvalInput
 from usl.evaluation.evaluate import dataset_spec, run_evaluation
 from usl.evaluation.report import write_report
-from usl.geometry import cube_to_frustum, ico_sphere
+from usl.geometry import MeshTemplate, cube_to_frustum, ico_sphere
 from usl.losses import combine_losses
 from usl.model.multiview_loss import REGULARIZERS, multiview_silhouette_loss, shape_regularizers
 from usl.model.outputs import ObjectPredictions
@@ -58,6 +58,7 @@ class FittedMeshes:
 def fit_sample(sample, cfg, steps: int, lr: float, ico_level: int) -> FittedMeshes:
     """Fit one sample's objects (every object of its input view, in ``object_rows`` order)."""
     sphere, faces = ico_sphere(ico_level)
+    template = MeshTemplate.build(faces, len(sphere))
     boxes = sample.frame.boxes[sample.object_rows].float()
     n = len(boxes)
     verts = sphere.expand(n, -1, -1).clone().requires_grad_(True)
@@ -77,7 +78,7 @@ def fit_sample(sample, cfg, steps: int, lr: float, ico_level: int) -> FittedMesh
     history = []
     for step in range(steps):
         silhouette = multiview_silhouette_loss(placed()[0], faces, [sample], [n], cfg.loss, step)
-        regs = shape_regularizers(verts, [], faces, [n], need)
+        regs = shape_regularizers(verts, [], template, [n], need)
         total, _ = combine_losses(weights, silhouette.l3d, None, **regs)
         optimizer.zero_grad()
         total.backward()

@@ -7,7 +7,8 @@ import trimesh
 
 from usl.geometry.icosphere import ico_sphere
 from usl.geometry.meshes import Meshes
-from usl.geometry.topology import uniform_laplacian, unique_edges
+from usl.geometry.topology import MeshTemplate, faces_on_each_edge, uniform_laplacian, unique_edges
+from usl.utils.op_count import count_ops
 
 
 @pytest.mark.parametrize("level", range(5))
@@ -128,6 +129,22 @@ def test_shared_topology_fast_path_equals_generic_path():
     assert torch.equal(fast.faces_packed(), torch.cat([sphere_f + i * len(sphere_v) for i in range(3)]))
     assert fast.verts_padded().data_ptr() == fast.verts_packed().data_ptr()  # a view, no copy
     assert all(f is sphere_f or torch.equal(f, sphere_f) for f in fast.faces_list())
+
+
+def test_a_mesh_template_gives_the_same_edges_with_no_device_read():
+    sphere_v, sphere_f = ico_sphere(2)
+    template = MeshTemplate.build(sphere_f, len(sphere_v))
+    assert torch.equal(template.edges, unique_edges(sphere_f)) and torch.equal(
+        template.edge_faces, faces_on_each_edge(sphere_f)
+    )
+    batch = torch.stack([sphere_v, sphere_v * 2 + 1, sphere_v - 3])
+    with count_ops() as count:
+        edges = Meshes.from_shared_topology(batch, sphere_f, template.edges).edges_packed()
+        laplacian = Meshes.from_shared_topology(batch, sphere_f, template.edges).laplacian_packed()
+    assert count.syncs.get("unique", 0) == 0, count.syncs
+    reference = Meshes.from_shared_topology(batch, sphere_f)
+    assert torch.equal(edges, reference.edges_packed())
+    assert torch.equal(laplacian.to_dense(), reference.laplacian_packed().to_dense())
 
 
 def test_offset_and_update_keep_topology_and_gradients():

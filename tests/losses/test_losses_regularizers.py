@@ -8,7 +8,7 @@ import trimesh
 from usl.geometry.icosphere import ico_sphere
 from usl.geometry.meshes import Meshes
 from usl.geometry.sampling import sample_points_from_meshes
-from usl.geometry.topology import faces_on_each_edge
+from usl.geometry.topology import MeshTemplate, faces_on_each_edge
 from usl.losses.regularizers import (
     laplacian_smoothing_loss,
     mesh_edge_loss,
@@ -134,7 +134,9 @@ def test_the_model_averages_each_regularizer_per_image_then_over_the_batch_and_s
     verts = v * torch.tensor([[1.0, 0.5, 2.0]]) + 0.05 * torch.randn(
         3, 42, 3, generator=torch.Generator().manual_seed(5)
     )
-    out = shape_regularizers(verts, [], faces, [2, 0, 1], {"normal": True, "edge": True, "laplacian": True})
+    out = shape_regularizers(
+        verts, [], MeshTemplate.build(faces, 42), [2, 0, 1], {"normal": True, "edge": True, "laplacian": True}
+    )
     per_mesh = normal_consistency(verts, faces, faces_on_each_edge(faces))
     assert out["normal"].item() == pytest.approx(((per_mesh[0] + per_mesh[1]) / 2 + per_mesh[2]).item() / 3)
     edge = [mesh_edge_loss(Meshes.from_shared_topology(verts[rows], faces)) for rows in (slice(0, 2), slice(2, 3))]

@@ -1,7 +1,8 @@
 """Plain-loop reference implementations used as oracles by the op tests.
 
 They transcribe the published semantics (torchvision's RoIAlign CPU kernel and the
-textbook greedy NMS) one sample / one box at a time, sharing no code with usl.
+textbook greedy NMS) one sample / one box at a time, sharing no code with usl; and the RoI
+heads' former proposal sampling, which read each image's label counts from the device.
 """
 
 from __future__ import annotations
@@ -98,3 +99,16 @@ def torchvision_ops():
         return ops
     except Exception:  # ImportError, or a broken compiled extension (RuntimeError, OSError, ...)
         return None
+
+
+def subsample_labels_read_per_image(
+    labels: torch.Tensor, num_samples: int, positive_fraction: float
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The former ``subsample_labels``: its two ``nonzero`` read each image's counts from the device."""
+    positive = torch.nonzero(labels == 1).squeeze(1)
+    negative = torch.nonzero(labels == 0).squeeze(1)
+    num_positive = min(positive.numel(), int(num_samples * positive_fraction))
+    num_negative = min(negative.numel(), num_samples - num_positive)
+    positive = positive[torch.randperm(positive.numel(), device=labels.device)[:num_positive]]
+    negative = negative[torch.randperm(negative.numel(), device=labels.device)[:num_negative]]
+    return positive, negative

@@ -6,13 +6,15 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from tests.model.detection_oracles import roi_align_loop
+from tests.model.detection_oracles import roi_align_loop, subsample_labels_read_per_image
+from usl.utils.op_count import count_ops
 from usl.model.detector import (
     ImageList,
     Instances,
     Matcher,
     MultiScaleRoIAlign,
     assign_boxes_to_levels,
+    label_counts,
     mask_targets,
     paste_masks_in_image,
     subsample_labels,
@@ -68,6 +70,22 @@ def test_subsample_labels_respects_budget_and_fraction():
     assert (labels[positive] == 1).all() and (labels[negative] == 0).all()
     positive, negative = subsample_labels(torch.tensor([1, 0, 0]), 16, 0.5)
     assert len(positive) == 1 and len(negative) == 2
+
+
+def test_subsampling_with_the_batch_counts_read_once_draws_as_the_former_per_image_reads():
+    g = torch.Generator().manual_seed(1)
+    images = [torch.randint(-1, 2, (n,), generator=g) for n in (0, 3, 40, 300)] + [torch.full((50,), 0)]
+    counts = label_counts(images)
+    assert counts == [(int((x == 1).sum()), int((x == 0).sum())) for x in images]
+    for budget, fraction in ((16, 0.25), (512, 0.25), (8, 1.0)):
+        torch.manual_seed(3)
+        former = [subsample_labels_read_per_image(x, budget, fraction) for x in images]
+        torch.manual_seed(3)
+        with count_ops() as reads:
+            drawn = [subsample_labels(x, budget, fraction, c) for x, c in zip(images, counts)]
+        assert reads.total_syncs == 0, reads.syncs
+        for (positive, negative), (old_positive, old_negative) in zip(drawn, former):
+            assert torch.equal(positive, old_positive) and torch.equal(negative, old_negative)
 
 
 def test_dense_subsampling_draws_the_same_sizes_uniformly_for_every_row():

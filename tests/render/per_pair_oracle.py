@@ -19,6 +19,7 @@ from usl.render.dynamic import (
     square_windows,
     window_intrinsics,
 )
+from usl.render.screen import project_faces
 from usl.render.soft import SoftRasterSettings, rasterize_soft
 
 Tensor = torch.Tensor
@@ -93,3 +94,15 @@ def render_dynamic_per_pair(
         windows=windows.to(K.dtype),
         K_window=K_window,
     )
+
+
+def projected_boxes_of_kept_faces(verts: Tensor, faces: Tensor, face_window: Tensor, K: Tensor, near: float) -> Tensor:
+    """The former ``projected_boxes``: culled faces dropped by boolean indexing (a device read)."""
+    screen = project_faces(verts.detach(), faces, face_window, K.detach(), near)
+    xy = screen.xy[screen.visible].to(torch.float64)
+    owner = face_window[screen.visible]
+    boxes = _empty_boxes(K.shape[0], K.device).clone()
+    lo, hi = xy.amin(dim=1), xy.amax(dim=1)
+    boxes[:, :2] = boxes[:, :2].scatter_reduce(0, owner[:, None].expand(-1, 2), lo, "amin")
+    boxes[:, 2:] = boxes[:, 2:].scatter_reduce(0, owner[:, None].expand(-1, 2), hi, "amax")
+    return boxes

@@ -6,10 +6,12 @@ import torch
 import trimesh
 import torch.nn.functional as F
 
-from tests.render.per_pair_oracle import render_dynamic_per_pair
+from tests.render.per_pair_oracle import projected_boxes_of_kept_faces, render_dynamic_per_pair
 from tests.render.render_oracle import intrinsics, random_scene, render_pyrender
 from usl.geometry.cameras import scale_intrinsics
 from usl.render import SoftRasterSettings, render_dynamic, resample_masks_area
+from usl.render.dynamic import projected_boxes
+from usl.utils.op_count import count_ops
 
 SHARP = SoftRasterSettings(sigma=1e-10, blur_radius=1e-8, faces_per_pixel=None)
 
@@ -84,6 +86,22 @@ def test_batched_render_matches_the_per_pair_oracle_in_values_and_gradients():
         torch.testing.assert_close(getattr(new, name), getattr(old, name), atol=1e-9, rtol=1e-9)
     torch.testing.assert_close(new_grad, old_grad, atol=1e-9, rtol=1e-9)
     assert new.valid.float().mean() < 1.0  # the occluders did hide cells
+
+
+def test_projected_boxes_mask_culled_faces_like_the_former_indexing_and_read_nothing():
+    """Objects partly and wholly behind the near plane, one with no faces: boxes equal the former
+    boolean-indexing version exactly, with no host sync."""
+    objects = random_scene(np.random.default_rng(5), 3)
+    verts, faces, window = pack([(m.vertices, m.faces) for m in objects])
+    straddling = faces[window == 1].flatten().unique()
+    verts[straddling, 2] -= verts[straddling, 2].mean()  # some faces in front of the camera, some behind
+    verts[faces[window == 2].flatten(), 2] = -1.0  # wholly behind the camera
+    Ks = torch.stack([torch.as_tensor(intrinsics(64, 80, (0.0, 0.0)))] * 4)  # window 3 has no faces
+    with count_ops() as count:
+        boxes = projected_boxes(verts, faces, window, Ks, 0.05)
+    assert count.total_syncs == 0, count.syncs
+    assert torch.equal(boxes, projected_boxes_of_kept_faces(verts, faces, window, Ks, 0.05))
+    assert torch.isfinite(boxes[:2]).all() and torch.isinf(boxes[2:]).all()
 
 
 def _predicted_and_true_objects(rng, height, width):

@@ -5,9 +5,13 @@ import pytest
 import torch
 import trimesh
 
+from tests.render.host_read_oracle import iter_face_pixels_by_span, nearest_per_pixel_of_crowded
 from tests.render.render_oracle import intrinsics, random_rigid, random_scene, render_pyrender
 from usl.geometry.cameras import rigid_inverse, transform_points
 from usl.render import SoftRasterSettings, rasterize_soft, rasterize_soft_dense
+from usl.render.screen import FaceBoxes, iter_face_pixels
+from usl.render.soft import nearest_per_pixel
+from usl.utils.op_count import count_ops
 
 # Near-binary: a pixel 0.01 px outside an edge shared by several faces stays below 0.5.
 SHARP = SoftRasterSettings(sigma=1e-10, blur_radius=1e-8, faces_per_pixel=None)
@@ -179,3 +183,34 @@ def test_malformed_inputs_get_clear_errors():
         rasterize_soft(verts, faces, window, K[0], 8, 8)
     with pytest.raises(ValueError, match="sigma must be > 0"):
         SoftRasterSettings(sigma=0.0)
+
+
+@pytest.mark.parametrize("chunk_size", [1, 7, 50, 10_000])
+def test_pair_chunks_equal_the_former_span_reading_ones_without_a_read_per_chunk(chunk_size):
+    """Faces with no pixels (first, last, inside) and faces split across chunks."""
+    g = torch.Generator().manual_seed(2)
+    nx, ny = torch.randint(0, 6, (40,), generator=g), torch.randint(0, 5, (40,), generator=g)
+    nx[[0, 17, 39]] = 0
+    boxes = FaceBoxes(
+        x0=torch.randint(0, 30, (40,), generator=g), y0=torch.randint(0, 30, (40,), generator=g), nx=nx, ny=ny
+    )
+    with count_ops() as count:
+        chunks = list(iter_face_pixels(boxes, chunk_size))
+    assert count.total_syncs == 1, count.syncs  # the number of pairs, once
+    former = list(iter_face_pixels_by_span(boxes, chunk_size))
+    assert len(chunks) == len(former) > 0
+    for new, old in zip(chunks, former):
+        assert all(torch.equal(a, b) for a, b in zip(new, old))
+
+
+def test_nearest_faces_per_pixel_equal_the_former_crowded_only_ranking_without_a_read():
+    """Pixels with fewer, exactly k and more than k pairs, equal depths (ties go to the earlier pair)."""
+    g = torch.Generator().manual_seed(4)
+    pixel = torch.randint(0, 300, (5_000,), generator=g)
+    depth = torch.randint(1, 40, (5_000,), generator=g).float() / 8  # many ties
+    for k in (1, 3, 16, 100):
+        with count_ops() as count:
+            keep = nearest_per_pixel(pixel, depth, k)
+        assert count.total_syncs == 0, count.syncs
+        assert torch.equal(keep, nearest_per_pixel_of_crowded(pixel, depth, k))
+        assert torch.equal(torch.bincount(pixel[keep]), torch.bincount(pixel).clamp_max(k))

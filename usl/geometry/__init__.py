@@ -5,9 +5,10 @@ from usl.geometry.icosphere import ico_sphere
 from usl.geometry.meshes import Meshes
 from usl.geometry.nearest import chamfer_directions, nearest_neighbors
 from usl.geometry.sampling import face_areas_packed, sample_points_from_meshes
-from usl.geometry.topology import faces_on_each_edge, uniform_laplacian, unique_edges
+from usl.geometry.topology import MeshTemplate, faces_on_each_edge, uniform_laplacian, unique_edges
 
 __all__ = [
+    "MeshTemplate",
     "Meshes",
     "chamfer_directions",
     "cube_to_frustum",

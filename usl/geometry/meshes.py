@@ -37,17 +37,23 @@ class _Topology:
         self._cache: dict[object, Tensor] = {}
 
     @classmethod
-    def shared(cls, template: Tensor, num_meshes: int, num_verts: int) -> _Topology:
+    def shared(cls, template: Tensor, num_meshes: int, num_verts: int, edges: Tensor | None = None) -> _Topology:
         offsets = torch.arange(num_meshes, device=template.device) * num_verts
         packed = (template.unsqueeze(0) + offsets[:, None, None]).reshape(-1, 3)
-        return cls(packed, [num_verts] * num_meshes, [template.shape[0]] * num_meshes, template)
+        topology = cls(packed, [num_verts] * num_meshes, [template.shape[0]] * num_meshes, template)
+        if edges is not None:
+            topology._cache["edges"] = topology._offset_template(edges)
+        return topology
+
+    def _offset_template(self, local: Tensor) -> Tensor:
+        """The template's (E, 2) ``local`` vertex pairs in every mesh, packed."""
+        return (local.unsqueeze(0) + self.first_vert[:, None, None]).reshape(-1, 2)
 
     def edges(self) -> Tensor:
         if "edges" not in self._cache:
             if self.template is not None:
                 local = unique_edges(self.template, self.verts_counts[0] if self.verts_counts else None)
-                offsets = self.first_vert[:, None, None]
-                self._cache["edges"] = (local.unsqueeze(0) + offsets).reshape(-1, 2)
+                self._cache["edges"] = self._offset_template(local)
             else:
                 self._cache["edges"] = unique_edges(self.faces_packed, sum(self.verts_counts))
         return self._cache["edges"]
@@ -92,15 +98,19 @@ class Meshes:
         self._init(torch.cat(list(verts)), topology)
 
     @classmethod
-    def from_shared_topology(cls, verts: Tensor, faces: Tensor) -> Meshes:
-        """B meshes with one face template: verts (B, V, 3), faces (F, 3). No per-mesh loop."""
+    def from_shared_topology(cls, verts: Tensor, faces: Tensor, edges: Tensor | None = None) -> Meshes:
+        """B meshes with one face template: verts (B, V, 3), faces (F, 3). No per-mesh loop.
+
+        ``edges``: the template's ``unique_edges`` when the caller keeps them (``MeshTemplate``),
+        which spares the device read of computing them.
+        """
         if verts.dim() != 3 or verts.shape[-1] != 3 or not verts.is_floating_point():
             raise ValueError(
                 f"Meshes.from_shared_topology: verts must be float (B, V, 3), got {verts.dtype} {tuple(verts.shape)}"
             )
         _check_faces(faces, verts.shape[1], "template", on_device=True)
         num_meshes, num_verts = verts.shape[:2]
-        return cls._from_parts(verts.reshape(-1, 3), _Topology.shared(faces.long(), num_meshes, num_verts))
+        return cls._from_parts(verts.reshape(-1, 3), _Topology.shared(faces.long(), num_meshes, num_verts, edges))
 
     @classmethod
     def _from_parts(cls, verts_packed: Tensor, topology: _Topology) -> Meshes:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import torch
 
 Tensor = torch.Tensor
@@ -29,6 +31,24 @@ def faces_on_each_edge(faces: Tensor) -> Tensor:
     _, edge = torch.unique(sides, dim=0, return_inverse=True)
     face = torch.arange(len(faces), device=faces.device).repeat(3)
     return face[edge.argsort(stable=True)].view(-1, 2)
+
+
+@dataclass(frozen=True)
+class MeshTemplate:
+    """One triangle mesh's connectivity shared by many meshes (the model's ico-sphere per object).
+
+    Its edges and the faces on them come from ``unique``, whose output size is read from the
+    device: built once here, they are offset per mesh with no device read.
+    """
+
+    faces: Tensor  # (F, 3) int64
+    edges: Tensor  # (E, 2): unique_edges(faces)
+    edge_faces: Tensor  # (E, 2): faces_on_each_edge(faces)
+
+    @classmethod
+    def build(cls, faces: Tensor, num_verts: int) -> MeshTemplate:
+        faces = faces.long()
+        return cls(faces, unique_edges(faces, num_verts), faces_on_each_edge(faces))
 
 
 def uniform_laplacian(num_verts: int, edges: Tensor, dtype: torch.dtype = torch.float32) -> Tensor:

@@ -26,7 +26,7 @@ import torch
 
 from usl.model.config import LossConfig
 from usl.data.samples import MultiViewSample
-from usl.geometry import Meshes, faces_on_each_edge, sample_points_from_meshes
+from usl.geometry import Meshes, MeshTemplate, sample_points_from_meshes
 from usl.geometry.cameras import relative_transform, transform_points
 from usl.losses import (
     l2d_loss,
@@ -229,7 +229,7 @@ def _join_masks(blocks: list[Tensor | list[Tensor]]) -> Tensor | list[Tensor]:
 
 
 def shape_regularizers(
-    verts_cube: Tensor, offsets: list[Tensor], faces: Tensor, counts: list[int], need: dict[str, bool]
+    verts_cube: Tensor, offsets: list[Tensor], template: MeshTemplate, counts: list[int], need: dict[str, bool]
 ) -> dict[str, Tensor | None]:
     """Edge, ½‖dV‖² (summed over stages, pre-tanh), Laplacian and normal-consistency terms, each a
     per-image mean over objects averaged over the batch. Terms not in ``need`` are None (not computed).
@@ -238,7 +238,7 @@ def shape_regularizers(
     """
     zero = verts_cube.sum() * 0.0
     result: dict[str, Tensor | None] = {name: (zero.clone() if need.get(name) else None) for name in REGULARIZERS}
-    pairs = faces_on_each_edge(faces) if need.get("normal") else None
+    faces = template.faces
     starts = [0, *itertools.accumulate(counts)]
     batch = len(counts)
     for index in range(batch):
@@ -246,14 +246,15 @@ def shape_regularizers(
         if starts[index + 1] == starts[index]:
             continue
         if need.get("edge") or need.get("laplacian"):
-            meshes = Meshes.from_shared_topology(verts_cube[rows].float(), faces)
+            meshes = Meshes.from_shared_topology(verts_cube[rows].float(), faces, template.edges)
         if need.get("edge"):
             result["edge"] = result["edge"] + mesh_edge_loss(meshes) / batch
         if need.get("laplacian"):
             result["laplacian"] = result["laplacian"] + laplacian_smoothing_loss(meshes) / batch
         if need.get("normal"):
             result["normal"] = (
-                result["normal"] + normal_consistency(verts_cube[rows].float(), faces, pairs).mean() / batch
+                result["normal"]
+                + normal_consistency(verts_cube[rows].float(), faces, template.edge_faces).mean() / batch
             )
         if need.get("offset_l2"):
             result["offset_l2"] = result["offset_l2"] + sum(offset_l2_loss(o[rows]) for o in offsets) / batch

@@ -167,7 +167,9 @@ class USLModel(nn.Module):
             else:
                 l3d, stats = self._silhouette_loss(outputs, samples, iteration, diagnostics)
             need = {name: bool(getattr(weights, name) * weights.mu_reg) for name in REGULARIZERS}
-            regs = shape_regularizers(outputs.shape.verts, outputs.shape.offsets, self.faces, outputs.counts, need)
+            regs = shape_regularizers(
+                outputs.shape.verts, outputs.shape.offsets, self.shape_head.template, outputs.counts, need
+            )
             # Keep both heads in the graph even for a batch without objects (DDP needs every gradient).
             l3d = l3d + 0.0 * (outputs.layout.z.sum() + outputs.layout.rho.sum() + outputs.shape.verts.sum())
             total, parts = combine_losses(weights, l3d, detection, **regs)

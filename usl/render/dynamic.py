@@ -147,12 +147,14 @@ def _empty_if_degenerate(boxes: Tensor) -> Tensor:
 def projected_boxes(verts: Tensor, faces: Tensor, face_window: Tensor, K: Tensor, near: float) -> Tensor:
     """(P, 4) float64 boxes of each pair's projected non-culled faces (empty box if none)."""
     screen = project_faces(verts.detach(), faces, face_window, K.detach(), near)
-    xy = screen.xy[screen.visible].to(torch.float64)  # (Fv, 3, 2)
-    owner = face_window[screen.visible]
+    xy = screen.xy.to(torch.float64)  # (F, 3, 2)
+    # culled faces bound nothing (masked, not dropped: dropping them reads their count from the device)
+    visible = screen.visible[:, None]
+    lo = torch.where(visible, xy.amin(dim=1), torch.inf)
+    hi = torch.where(visible, xy.amax(dim=1), -torch.inf)
     boxes = _empty_boxes(K.shape[0], K.device).clone()
-    lo, hi = xy.amin(dim=1), xy.amax(dim=1)
-    boxes[:, :2] = boxes[:, :2].scatter_reduce(0, owner[:, None].expand(-1, 2), lo, "amin")
-    boxes[:, 2:] = boxes[:, 2:].scatter_reduce(0, owner[:, None].expand(-1, 2), hi, "amax")
+    boxes[:, :2] = boxes[:, :2].scatter_reduce(0, face_window[:, None].expand(-1, 2), lo, "amin")
+    boxes[:, 2:] = boxes[:, 2:].scatter_reduce(0, face_window[:, None].expand(-1, 2), hi, "amax")
     return boxes
 
 

@@ -175,15 +175,13 @@ def iter_face_pixels(boxes: FaceBoxes, chunk_size: int = DEFAULT_CHUNK_SIZE) -> 
     counts = boxes.nx * boxes.ny
     ends = torch.cumsum(counts, 0)
     starts = ends - counts
-    total = int(ends[-1]) if ends.numel() else 0
+    total = int(ends[-1]) if ends.numel() else 0  # the one device read: how many pairs
+    every_face = torch.arange(counts.numel(), device=ends.device)
     for start in range(0, total, chunk_size):
         stop = min(start + chunk_size, total)
-        bounds = torch.searchsorted(ends, torch.tensor([start, stop - 1], device=ends.device), right=True).tolist()
-        span = slice(bounds[0], bounds[1] + 1)  # the faces owning pairs start .. stop - 1
-        repeats = ends[span].clamp_max(stop) - starts[span].clamp_min(start)
-        face = torch.repeat_interleave(
-            torch.arange(span.start, span.stop, device=ends.device), repeats, output_size=stop - start
-        )
+        # each face's share of pairs start .. stop - 1 (0 outside): no read of which faces those are
+        repeats = (ends.clamp_max(stop) - starts.clamp_min(start)).clamp_min(0)
+        face = torch.repeat_interleave(every_face, repeats, output_size=stop - start)
         local = torch.arange(start, stop, device=ends.device) - starts.index_select(0, face)
         nx = boxes.nx.index_select(0, face)
         yield face, boxes.x0.index_select(0, face) + local % nx, boxes.y0.index_select(0, face) + local // nx

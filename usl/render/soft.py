@@ -184,24 +184,20 @@ def nearest_per_pixel(pixel: Tensor, depth: Tensor, k: int) -> Tensor:
     """Bool mask of the pairs that rank among the ``k`` smallest depths of their pixel.
 
     Depth is compared in float32 and ties go to the earlier pair (the lower face index, in
-    the order pairs are enumerated). Pixels with at most ``k`` pairs keep them all; the
-    rest are ranked by one stable sort on the key ``pixel << 32 | float32 bits of depth``
-    (the bit pattern of a positive float orders like its value), a pair's rank being its
-    distance from the start of its pixel's run.
+    the order pairs are enumerated). All pairs are ranked by one stable sort on the key
+    ``pixel << 32 | float32 bits of depth`` (the bit pattern of a positive float orders like
+    its value), a pair's rank being its distance from the start of its pixel's run. Sorting
+    every pair, not only those of pixels with more than ``k``, keeps every size known on the
+    host: nothing is read from the device.
     """
-    counts = torch.bincount(pixel)
-    keep = counts.index_select(0, pixel) <= k
-    crowded = torch.nonzero(~keep).squeeze(1)
-    depth_bits = _ordering_depth(depth.index_select(0, crowded)).view(torch.int32).long()
-    key = (pixel.index_select(0, crowded) << 32) | depth_bits
-    order = crowded.index_select(0, torch.argsort(key, stable=True))
+    depth_bits = _ordering_depth(depth).view(torch.int32).long()
+    order = torch.argsort((pixel << 32) | depth_bits, stable=True)
     sorted_pixel = pixel.index_select(0, order)
     position = torch.arange(order.numel(), device=pixel.device)
     run_start = torch.ones_like(sorted_pixel, dtype=torch.bool)
     run_start[1:] = sorted_pixel[1:] != sorted_pixel[:-1]
     first = torch.cummax(torch.where(run_start, position, torch.zeros_like(position)), dim=0).values
-    keep[order.index_select(0, torch.nonzero(position - first < k).squeeze(1))] = True
-    return keep
+    return torch.empty_like(run_start).index_copy_(0, order, position - first < k)
 
 
 def _ordering_depth(depth: Tensor) -> Tensor:

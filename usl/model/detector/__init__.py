@@ -4,7 +4,7 @@ from .box_head import FastRCNNFCHead, FastRCNNOutputLayers
 from .config import AnchorConfig, BoxHeadConfig, DetectorConfig, MaskHeadConfig, ROIHeadsConfig, RPNConfig
 from .mask_head import MaskRCNNConvUpsampleHead, mask_rcnn_loss, mask_targets, paste_masks_in_image
 from .mask_rcnn import InvalidTargetError, MaskRCNN
-from .matcher import Matcher, subsample_labels, subsample_labels_dense
+from .matcher import Matcher, label_counts, subsample_labels, subsample_labels_dense
 from .poolers import MultiScaleRoIAlign, assign_boxes_to_levels
 from .roi_heads import ROI_HEADS, StandardROIHeads, build_roi_heads
 from .rpn import RPN, RPNHead
@@ -35,6 +35,7 @@ __all__ = [
     "mask_rcnn_loss",
     "mask_targets",
     "paste_masks_in_image",
+    "label_counts",
     "subsample_labels",
     "subsample_labels_dense",
 ]

@@ -53,18 +53,31 @@ class Matcher:
         return matches, labels
 
 
-def subsample_labels(labels: Tensor, num_samples: int, positive_fraction: float) -> tuple[Tensor, Tensor]:
+def label_counts(labels: Sequence[Tensor]) -> list[tuple[int, int]]:
+    """(foreground, background) counts of each image's labels, in one host read for them all."""
+    if not labels:
+        return []
+    counts = torch.stack([torch.stack([(image == 1).sum(), (image == 0).sum()]) for image in labels])
+    return [(int(positive), int(negative)) for positive, negative in counts.tolist()]
+
+
+def subsample_labels(
+    labels: Tensor, num_samples: int, positive_fraction: float, counts: tuple[int, int] | None = None
+) -> tuple[Tensor, Tensor]:
     """Randomly pick at most ``num_samples`` of the labelled predictions, ideally a
     ``positive_fraction`` of them foreground (label 1), the rest background (label 0).
 
-    Returns the indices of the sampled positives and negatives.
+    ``counts``: the labels' ``label_counts`` when the caller has read them for a whole batch (the
+    draws need them on the host; otherwise they are read here). Returns the indices of the sampled
+    positives and negatives.
     """
-    positive = torch.nonzero(labels == 1).squeeze(1)
-    negative = torch.nonzero(labels == 0).squeeze(1)
-    num_positive = min(positive.numel(), int(num_samples * positive_fraction))
-    num_negative = min(negative.numel(), num_samples - num_positive)
-    positive = positive[torch.randperm(positive.numel(), device=labels.device)[:num_positive]]
-    negative = negative[torch.randperm(negative.numel(), device=labels.device)[:num_negative]]
+    num_positive_labels, num_negative_labels = label_counts([labels])[0] if counts is None else counts
+    positive = torch.nonzero_static(labels == 1, size=num_positive_labels).squeeze(1)
+    negative = torch.nonzero_static(labels == 0, size=num_negative_labels).squeeze(1)
+    num_positive = min(num_positive_labels, int(num_samples * positive_fraction))
+    num_negative = min(num_negative_labels, num_samples - num_positive)
+    positive = positive[torch.randperm(num_positive_labels, device=labels.device)[:num_positive]]
+    negative = negative[torch.randperm(num_negative_labels, device=labels.device)[:num_negative]]
     return positive, negative
 
 

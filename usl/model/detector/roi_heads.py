@@ -18,7 +18,7 @@ from ..ops import box_iou
 from .box_head import FastRCNNFCHead, FastRCNNOutputLayers
 from .config import ROIHeadsConfig
 from .mask_head import MaskRCNNConvUpsampleHead, mask_rcnn_loss, mask_targets, paste_masks_in_image, select_class_masks
-from .matcher import Matcher, subsample_labels
+from .matcher import Matcher, label_counts, subsample_labels
 from .point_rend import PointRendMaskHead
 from .poolers import MultiScaleRoIAlign
 from .structures import Instances
@@ -94,13 +94,19 @@ class StandardROIHeads(nn.Module):
 
         Background proposals get class ``num_classes`` and ``gt_index`` -1.
         """
+        candidates = [
+            torch.cat([p.proposal_boxes, t.gt_boxes.to(p.proposal_boxes.dtype)])
+            if self.cfg.proposal_append_gt
+            else p.proposal_boxes
+            for p, t in zip(proposals, targets)
+        ]
+        matched = [self.matcher(box_iou(t.gt_boxes, boxes)) for t, boxes in zip(targets, candidates)]
+        counts = label_counts([labels for _, labels in matched])  # one host read for the batch's draws
         sampled = []
-        for proposal, target in zip(proposals, targets):
-            boxes = proposal.proposal_boxes
-            if self.cfg.proposal_append_gt:
-                boxes = torch.cat([boxes, target.gt_boxes.to(boxes.dtype)])
-            matches, labels = self.matcher(box_iou(target.gt_boxes, boxes))
-            positive, negative = subsample_labels(labels, self.cfg.batch_size_per_image, self.cfg.positive_fraction)
+        for proposal, target, boxes, (matches, labels), count in zip(proposals, targets, candidates, matched, counts):
+            positive, negative = subsample_labels(
+                labels, self.cfg.batch_size_per_image, self.cfg.positive_fraction, count
+            )
             keep = torch.cat([positive, negative])
             is_foreground = torch.arange(len(keep), device=keep.device) < len(positive)
             matched = matches[keep]

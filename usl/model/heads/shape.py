@@ -25,7 +25,7 @@ import torch
 from torch import nn
 
 from usl.model.config import ShapeHeadConfig
-from usl.geometry import ico_sphere, unique_edges
+from usl.geometry import MeshTemplate, ico_sphere
 from usl.model.backbone import ShapeSpec
 
 from .graph_conv import GraphConv
@@ -107,7 +107,9 @@ class ShapeHead(nn.Module):
         verts, faces = ico_sphere(cfg.ico_level)
         self.register_buffer("sphere_verts", verts, persistent=False)
         self.register_buffer("faces", faces, persistent=False)
-        self.register_buffer("edges", unique_edges(faces, verts.shape[0]), persistent=False)
+        template = MeshTemplate.build(faces, verts.shape[0])
+        self.register_buffer("edges", template.edges, persistent=False)
+        self.register_buffer("edge_faces", template.edge_faces, persistent=False)
         self.poolers = (
             nn.ModuleList(
                 single_level_pooler(name, stride, cfg.vertalign_resolution)
@@ -130,6 +132,11 @@ class ShapeHead(nn.Module):
             for index in range(cfg.num_stages)
         )
 
+    @property
+    def template(self) -> MeshTemplate:
+        """The ico-sphere's connectivity, shared by every predicted mesh (on the module's device)."""
+        return MeshTemplate(self.faces, self.edges, self.edge_faces)
+
     def forward(
         self,
         features: Mapping[str, Tensor],
@@ -142,6 +149,7 @@ class ShapeHead(nn.Module):
         image_index = torch.repeat_interleave(
             torch.arange(len(boxes), device=flat_boxes.device),
             torch.tensor([len(b) for b in boxes], device=flat_boxes.device),
+            output_size=len(flat_boxes),
         )
         verts = self.sphere_verts.expand(len(flat_boxes), -1, -1)
         maps = [features[name] for name in self.cfg.features]
