@@ -5,8 +5,8 @@ on read, and a v2 folder; then whole samples decoded to tensors from the v2 fold
     python scripts/bench/records_versions.py V1_ROOT V2_ROOT   # e.g. a v1 build and its migrated copy
 """
 
+import argparse
 import random
-import sys
 import time
 from bisect import bisect_right
 
@@ -22,7 +22,13 @@ def base_read(shard, first, offsets):  # usl 0.1's read_rows: no upgrade step
     return t.take([r - int(shard.group_starts[g0]) for r in rows]).to_pylist()
 
 
-v1, v2 = RecordsDataset(sys.argv[1], "train"), RecordsDataset(sys.argv[2], "train")
+parser = argparse.ArgumentParser(
+    description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter
+)
+parser.add_argument("v1_root", help="a schema-v1 dataset folder")
+parser.add_argument("v2_root", help="the same scenes in schema v2 (e.g. the v1 folder's migrated copy)")
+args = parser.parse_args()
+v1, v2 = RecordsDataset(args.v1_root, "train"), RecordsDataset(args.v2_root, "train")
 rng = random.Random(0)
 picks = [(s, sorted(rng.sample(range(v1.num_views(s)), 5))) for s in rng.choices(v1.scene_ids, k=200)]
 
