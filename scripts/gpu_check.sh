@@ -3,7 +3,8 @@
 #   1. the CUDA tests            (tests that skip themselves without a GPU)
 #   2. bench/rasterizer.py       --device cuda
 #   3. bench/train.py            hypersim recipe at the paper's 768x1024, 2 images x 5 views per GPU,
-#                                against the paper's 16 images per 1.1 s on 8 V100s (1.82 images/s per GPU)
+#                                against the paper's 16 images per 1.1 s on 8 V100s (1.82 images/s per GPU),
+#                                and the fraction of wall time the GPU is busy (torch.profiler)
 #   4. bench/predict.py          both recipes and modes at the paper's sizes, against 8 / 3 fps (V100)
 #   5. bench/segment.py          usl-segment's PointRend on 640x480 frames (random weights), frames/s
 # and one summary table. Each step has its own time limit, so a hung step costs only its budget;
@@ -76,8 +77,9 @@ FIGURES[1]="$(grep -m 1 'render_dynamic' "$LOGS/step1.log" | sed 's/.*-> *//; s/
 run_step 2 "${TRAIN[@]}"
 train_ips="$(grep -m 1 'images/s:' "$LOGS/step2.log" | awk '{print $2}')"
 train_mem="$(grep -m 1 -E 'peak (GPU memory|process RSS)' "$LOGS/step2.log" | awk '{print $(NF-1), $NF}')"
+train_busy="$(grep -m 1 'GPU busy:' "$LOGS/step2.log" | awk '{print $3}')"
 if [[ -n "$train_ips" && $MODE == cuda ]]; then
-  FIGURES[2]="$train_ips images/s/GPU ($(awk -v x="$train_ips" 'BEGIN { printf "%.2f", x / (16 / 1.1 / 8) }')x paper's 1.82), peak $train_mem"
+  FIGURES[2]="$train_ips images/s/GPU ($(awk -v x="$train_ips" 'BEGIN { printf "%.2f", x / (16 / 1.1 / 8) }')x paper's 1.82), GPU busy ${train_busy:-?}, peak $train_mem"
 else
   FIGURES[2]="${train_ips:+$train_ips images/s, peak $train_mem}"
 fi

@@ -1,8 +1,9 @@
 #!/usr/bin/env bash
 # README command (1): the main job, end to end on the built-in Scene-Shapes default, on CPU.
-#   build a small Scene-Shapes set, and a held-out one with another seed (other shape models,
+#   build a small Scene-Shapes set, and three held-out ones with other seeds (other shape models,
 #   other scenes) -> validate + contact sheet -> train a recipe (`tiny`) -> evaluate USL against
-#   the paper's baselines on the held-out build -> report (Markdown table, JSON, pictures).
+#   the paper's baselines on every input view of the held-out builds -> report (Markdown table of
+#   mean ± std over the builds, JSON, pictures).
 # Re-running resumes every stage (the builds keep finished shards, training continues from its
 # last checkpoint). Recipe: $USL_MAIN_CONFIG (default tiny; tiny_long trains 8,000 iterations,
 # half an hour or more of a 2-core CPU). Output folder: $USL_MAIN_OUT (default runs/main for
@@ -15,20 +16,20 @@ export PYOPENGL_PLATFORM=${PYOPENGL_PLATFORM:-egl}
 CONFIG=${USL_MAIN_CONFIG:-tiny}
 OUT=${USL_MAIN_OUT:-runs/main$([[ $CONFIG == tiny ]] || echo "_$CONFIG")}
 DATA=$OUT/scene_shapes
-HELDOUT=$OUT/scene_shapes_heldout
 RUN=$OUT/train
 EVAL=$OUT/eval
 mkdir -p "$OUT"
 start=$(date +%s)
 
-echo "== 1/4 build Scene-Shapes ($DATA) and a held-out build with another seed ($HELDOUT)"
 source scripts/lib/scene_shapes_builds.sh
+echo "== 1/4 build Scene-Shapes ($DATA) and held-out builds with seeds ${HELDOUT_SEEDS[*]} ($OUT/heldout/seed*)"
 build_scene_shapes "$DATA" 0 60
-build_scene_shapes "$HELDOUT" 1 60
+heldout_builds "$OUT"
 
 echo "== 2/4 validate and summarise"
-usl-records validate "$DATA"
-usl-records validate "$HELDOUT"
+for build in "$DATA" "${HELDOUT_SEEDS[@]/#/$OUT/heldout/seed}"; do
+  usl-records validate "$build"
+done
 usl-records info "$DATA" --sheet "$OUT/contact_sheet.png"
 
 echo "== 3/4 train the $CONFIG recipe on CPU"
@@ -51,11 +52,6 @@ else
   train_with_procs "$PROCS" --config "$CONFIG" --out "$RUN" data.root="$DATA"
 fi
 
-echo "== 4/4 evaluate on the held-out build against the baselines"
-# Every scene and shape model of the seed-1 build is new to the model; its train split is the
-# largest (48 scenes), and every 8th view of each scene is an input view (48 input views).
-usl-eval "$HELDOUT" --split train --input-views every:8 --checkpoint "$RUN" \
-  --rows random,fixed,model,layout_only,detections --out "$EVAL" --pictures 6
-
-python3 scripts/lib/main_job_verdict.py "$EVAL/metrics.json"
-echo "main job done in $(( $(date +%s) - start )) s: report in $EVAL/table.md, pictures in $EVAL/pictures/"
+echo "== 4/4 evaluate on every input view of the held-out builds against the baselines"
+evaluate_heldout "$OUT" "$RUN" "$EVAL" random,fixed,model,layout_only,detections 6
+echo "main job done in $(( $(date +%s) - start )) s: report in $EVAL/table.md, pictures in $EVAL/seed${HELDOUT_SEEDS[0]}/pictures/"

@@ -74,6 +74,32 @@ def bench_step(
     return step, [pool[k * size : (k + 1) * size] for k in range(num_batches)]
 
 
+def gpu_busy_fraction(train_step: TrainStep, batches: list[list], device: torch.device) -> float:
+    """Fraction of the wall time of ``batches`` steps during which at least one kernel ran on the GPU:
+    the union of the profiler's device-kernel intervals over the span of the steps. Far below 1, the
+    GPU waits on the host (Python, launches, syncs), which no faster kernel can fix."""
+    from torch.profiler import ProfilerActivity, profile
+
+    torch.cuda.synchronize(device)
+    with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as prof:
+        start = time.perf_counter()
+        for batch in batches:
+            train_step(batch)
+        torch.cuda.synchronize(device)
+        wall_us = (time.perf_counter() - start) * 1e6
+    kernels = sorted(
+        (e.time_range.start, e.time_range.end)
+        for e in prof.events()
+        if e.device_type == torch.autograd.DeviceType.CUDA and e.time_range.end > e.time_range.start
+    )
+    busy, reach = 0.0, float("-inf")
+    for begin, end in kernels:  # union of intervals
+        if end > reach:
+            busy += end - max(begin, reach)
+            reach = end
+    return min(busy / wall_us, 1.0) if wall_us > 0 else 0.0
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--config", default="tiny")
@@ -86,6 +112,7 @@ def main() -> None:
     p.add_argument("--objects", type=int, help="synthetic objects per input view")
     p.add_argument("--views", type=int, help="views per sample (default: the recipe's data.num_views)")
     p.add_argument("--threads", type=int, default=0, help="CPU intra-op threads (0: torch default)")
+    p.add_argument("--busy-steps", type=int, default=3, help="CUDA: steps profiled for the GPU-busy fraction (0: skip)")
     p.add_argument("overrides", nargs="*", help="config overrides key=value")
     args = p.parse_args()
     device = torch.device(args.device)
@@ -119,6 +146,9 @@ def main() -> None:
     print(f"  images/s: {images / per_iter:.2f}   last loss {values['loss']:.4f}")
     if device.type == "cuda":
         print(f"  peak GPU memory: {torch.cuda.max_memory_allocated(device) / 2**30:.2f} GiB")
+        if args.busy_steps:
+            busy = gpu_busy_fraction(train_step, [batches[i % len(batches)] for i in range(args.busy_steps)], device)
+            print(f"  GPU busy: {100 * busy:.0f}% of wall time ({args.busy_steps} steps, torch.profiler)")
     print(f"  peak process RSS: {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20:.2f} GiB")
 
 

@@ -4,6 +4,8 @@
 #   source scripts/lib/scene_shapes_builds.sh
 #   build_scene_shapes OUT SEED SCENES [builder options]      # SCENES scenes and as many shape models
 #   experiment_builds DATA TRAIN_SCENES HELDOUT_SCENES [builder options, e.g. --quiet]
+#   heldout_builds DATA [builder options]                     # DATA/heldout/seed{1,2,3}, 20 scenes each
+#   evaluate_heldout DATA CHECKPOINT EVAL ROWS PICTURES       # every input view of those, mean ± std
 #
 # Both build the main job's format (8 views per scene at two heights, 128^2), or resume a build (a
 # finished one is verified and kept). experiment_builds makes a training build (seed 0) in
@@ -27,4 +29,36 @@ experiment_builds() {  # DATA TRAIN_SCENES HELDOUT_SCENES [builder options]
   HELDOUT=$data/heldout_seed1
   build_scene_shapes "$TRAIN" 0 "$train_scenes" "$@"
   build_scene_shapes "$HELDOUT" 1 "$heldout_scenes" "$@"
+}
+
+# The held-out protocol of the main job and of recipe_experiment.sh: three builds with other seeds
+# (other shape models, other scenes), every view of every scene of their train split (the largest)
+# an input view in turn, scored by usl-eval, then summarised as mean ± std over the builds.
+HELDOUT_SEEDS=(1 2 3)
+HELDOUT_SCENES=20  # per build: 16 train scenes x 8 views = 128 input views, 384 over the three
+
+heldout_builds() {  # DATA [builder options]: DATA/heldout/seed<k> for each held-out seed
+  local data=$1 seed
+  shift
+  for seed in "${HELDOUT_SEEDS[@]}"; do
+    build_scene_shapes "$data/heldout/seed$seed" "$seed" "$HELDOUT_SCENES" "$@"
+  done
+}
+
+evaluate_heldout() {  # DATA CHECKPOINT EVAL ROWS PICTURES: usl-eval of each build into EVAL/seed<k>, then the summary
+  local data=$1 checkpoint=$2 eval=$3 rows=$4 pictures=$5 seed status=0 pids=()
+  mkdir -p "$eval"
+  # side by side, as they share the cores and end together; pictures of the first build only
+  for seed in "${HELDOUT_SEEDS[@]}"; do
+    OMP_NUM_THREADS=1 python3 -m usl.cli.evaluate "$data/heldout/seed$seed" --split train --input-views all \
+      --checkpoint "$checkpoint" --rows "$rows" --out "$eval/seed$seed" --quiet \
+      --pictures "$([[ $seed == "${HELDOUT_SEEDS[0]}" ]] && echo "$pictures" || echo 0)" >"$eval/seed$seed.log" 2>&1 &
+    pids+=($!)
+  done
+  for seed in "${HELDOUT_SEEDS[@]}"; do
+    wait "${pids[0]}" || { status=1; echo "evaluate_heldout: usl-eval failed on $data/heldout/seed$seed:" >&2; tail -n 5 "$eval/seed$seed.log" >&2; }
+    pids=("${pids[@]:1}")
+  done
+  [[ $status == 0 ]] || return 1
+  python3 scripts/lib/main_job_verdict.py "$eval"
 }
