@@ -18,11 +18,11 @@ from tqdm import tqdm
 
 from .build_state import BUILD_FILE, STATE_DIR, BuildState, identity_difference, read_build_file, shard_name
 from .claims import Owner
-from usl.errors import UslError
+from usl.errors import UslError, one_line
 
 from .manifest import SHARD_FILE_KEYS, build_manifest, check_relative, publish_dataset
 from .names import check_name
-from .schema import shard_file
+from .schema import SCHEMA_VERSION, file_schema_version, shard_file
 from .shards import ShardResult, size_problem
 from .storage_faults import storage_faults
 from .tempfiles import temp_path
@@ -78,7 +78,25 @@ def _part_shard(part: Path, state: BuildState, split: str, index: int) -> dict[s
         check_relative(info["file"], f"{where} {table}")
         if info["file"] != shard_file(table, split, index):
             raise UslError(f"{where}: {table} file {info['file']!r} is not {shard_file(table, split, index)!r}")
+        _check_current_schema(part / info["file"])
     return marker
+
+
+def _check_current_schema(path: Path) -> None:
+    """A part built by an older usl is refused: its shards would mix schema versions in one dataset."""
+    if not path.exists():
+        return  # reported as missing when copied
+    try:
+        version = file_schema_version(path)
+    except UslError:
+        raise
+    except Exception as exc:  # pyarrow raises several types for broken footers
+        raise UslError(f"{path}: unreadable Parquet footer ({one_line(exc)})") from exc
+    if version != SCHEMA_VERSION:
+        raise UslError(
+            f"{path}: record schema v{version}, but this usl writes v{SCHEMA_VERSION}; rebuild the part "
+            "with this usl, or gather with the usl that built it and then run usl-records migrate"
+        )
 
 
 def _shard_files(marker: dict[str, Any]) -> list[tuple[str, dict[str, Any]]]:
