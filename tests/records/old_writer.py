@@ -37,6 +37,22 @@ def _old_row(row, table, version):
     return {**row, "image": row["image"]["bytes"], "instances": instances}
 
 
+def write_old_file(source: Path, target: Path, table: str, version: int) -> dict:
+    """One current shard file rewritten in schema ``version`` at ``target``; its size and checksum."""
+    source = pq.ParquetFile(source)
+    meta = json.loads(source.schema_arrow.metadata[METADATA_KEY])
+    metadata = {METADATA_KEY: json.dumps({**meta, "schema_version": version})}
+    if version == 2:
+        metadata[HF_METADATA_KEY] = json.dumps({"info": {"features": hf_features(table, 2)}})
+    schema = table_schema(table, version).with_metadata(metadata)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    with pq.ParquetWriter(target, schema) as writer:
+        for group in range(source.num_row_groups):
+            rows = [_old_row(r, table, version) for r in source.read_row_group(group).to_pylist()]
+            writer.write_table(pa.Table.from_pylist(rows, schema=schema))
+    return {"bytes": target.stat().st_size, "sha256": sha256_file(target)}
+
+
 def write_old_copy(root: Path, target: Path, version: int) -> Path:
     """``root`` (a current build) rewritten as a schema ``version`` (1 or 2) folder at ``target``."""
     manifest = json.loads((root / "manifest.json").read_text())
@@ -46,24 +62,9 @@ def write_old_copy(root: Path, target: Path, version: int) -> Path:
             for table in ("frames", "objects"):
                 if not shard[table]:
                     continue
-                source = pq.ParquetFile(root / shard[table]["file"])
-                meta = json.loads(source.schema_arrow.metadata[METADATA_KEY])
-                metadata = {METADATA_KEY: json.dumps({**meta, "schema_version": version})}
-                if version == 2:
-                    metadata[HF_METADATA_KEY] = json.dumps({"info": {"features": hf_features(table, 2)}})
-                schema = table_schema(table, version).with_metadata(metadata)
                 file = f"{split}/{table}-{shard['index']:05d}.parquet" if version == 1 else shard[table]["file"]
-                (target / file).parent.mkdir(parents=True, exist_ok=True)
-                with pq.ParquetWriter(target / file, schema) as writer:
-                    for group in range(source.num_row_groups):
-                        rows = [_old_row(r, table, version) for r in source.read_row_group(group).to_pylist()]
-                        writer.write_table(pa.Table.from_pylist(rows, schema=schema))
-                shard[table] = {
-                    "file": file,
-                    "rows": shard[table]["rows"],
-                    "bytes": (target / file).stat().st_size,
-                    "sha256": sha256_file(target / file),
-                }
+                written = write_old_file(root / shard[table]["file"], target / file, table, version)
+                shard[table] = {"file": file, "rows": shard[table]["rows"], **written}
     if version == 2:
         shutil.copy(root / "README.md", target / "README.md")
     (target / "manifest.json").write_text(json.dumps(manifest, indent=1))
