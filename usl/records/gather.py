@@ -18,7 +18,7 @@ from tqdm import tqdm
 
 from .build_state import BUILD_FILE, STATE_DIR, BuildState, identity_difference, read_build_file, shard_name
 from .claims import Owner
-from usl.errors import UslError, one_line
+from usl.errors import UslError
 
 from .manifest import SHARD_FILE_KEYS, build_manifest, check_relative, publish_dataset
 from .names import check_name
@@ -78,20 +78,15 @@ def _part_shard(part: Path, state: BuildState, split: str, index: int) -> dict[s
         check_relative(info["file"], f"{where} {table}")
         if info["file"] != shard_file(table, split, index):
             raise UslError(f"{where}: {table} file {info['file']!r} is not {shard_file(table, split, index)!r}")
-        _check_current_schema(part / info["file"])
+        _check_current_schema(part / info["file"], info)
     return marker
 
 
-def _check_current_schema(path: Path) -> None:
+def _check_current_schema(path: Path, info: dict[str, Any]) -> None:
     """A part built by an older usl is refused: its shards would mix schema versions in one dataset."""
-    if not path.exists():
-        return  # reported as missing when copied
-    try:
-        version = file_schema_version(path)
-    except UslError:
-        raise
-    except Exception as exc:  # pyarrow raises several types for broken footers
-        raise UslError(f"{path}: unreadable Parquet footer ({one_line(exc)})") from exc
+    if size_problem(path, info):
+        return  # missing or truncated: reported when copied
+    version = file_schema_version(path)
     if version != SCHEMA_VERSION:
         raise UslError(
             f"{path}: record schema v{version}, but this usl writes v{SCHEMA_VERSION}; rebuild the part "

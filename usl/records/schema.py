@@ -12,7 +12,7 @@ import pyarrow.parquet as pq
 
 from data_specs import load_schema_spec
 
-from usl.errors import UslError
+from usl.errors import UslError, one_line
 
 SCHEMA_VERSION = 3  # what writers produce; readers also read every version in KNOWN_VERSIONS
 KNOWN_VERSIONS = (1, 2, 3)
@@ -131,7 +131,11 @@ def read_metadata(schema: pa.Schema, path: str) -> dict[str, Any]:
 
 def file_schema_version(path: Path) -> int:
     """The record schema version a shard file was written in (read from its footer only)."""
-    return read_metadata(pq.read_schema(path), str(path))["schema_version"]
+    try:
+        schema = pq.read_schema(path)
+    except Exception as exc:  # pyarrow raises several types for broken footers
+        raise UslError(f"{path}: unreadable Parquet footer ({one_line(exc)})") from exc
+    return read_metadata(schema, str(path))["schema_version"]
 
 
 def check_version(version: Any, path: str) -> None:
