@@ -16,7 +16,7 @@ DATASETS = ("scene_shapes", "hypersim", "scannet")
 
 
 @lru_cache(maxsize=None)
-def load_schema_spec(version: int = 2) -> dict[str, Any]:
+def load_schema_spec(version: int = 3) -> dict[str, Any]:
     """The record schema of the given version, as declared in ``schema_v<version>.yaml``."""
     path = SPEC_DIR / f"schema_v{version}.yaml"
     if not path.exists():

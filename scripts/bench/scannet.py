@@ -162,7 +162,9 @@ def speed(work: Path, config: Config, num_frames: int) -> dict[str, float]:
                 rows = list(scene_frames(scan, tracked, grid, opts))
                 out["encode fps (pass 2)"] = len(rows) / (time.process_time() - start)
                 out["record MB/frame"] = (
-                    sum(len(r["image"]["bytes"]) + len(r["depth"] or b"") for r in rows) / len(rows) / 2**20
+                    sum(len(r["image"]["bytes"]) + len((r["depth"] or {"bytes": b""})["bytes"]) for r in rows)
+                    / len(rows)
+                    / 2**20
                 )
     start = time.process_time()
     record = build_scene(ScanUnit("scene0100_00", str(scan_dir), source, options(config, 1)))

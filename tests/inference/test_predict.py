@@ -24,14 +24,6 @@ from usl.errors import UslError
 CATEGORIES = CategoryIndex([{"id": 1, "name": "chair"}, {"id": 2, "name": "sofa"}, {"id": 3, "name": "dining table"}])
 
 
-@pytest.fixture(scope="module")
-def image_path(tmp_path_factory):
-    path = tmp_path_factory.mktemp("images") / "room.png"
-    rng = np.random.default_rng(0)
-    cv2.imwrite(str(path), rng.integers(0, 255, (80, 120, 3), dtype=np.uint8))
-    return path
-
-
 def fake_detector(frame):
     """Three spheres in known boxes; the third scores below the default threshold."""
     boxes = torch.tensor([[10.0, 10.0, 40.0, 50.0], [60.0, 20.0, 100.0, 60.0], [0.0, 0.0, 20.0, 20.0]])

@@ -2,12 +2,12 @@ import pytest
 
 
 @pytest.fixture(scope="session")
-def fake_v2(tmp_path_factory):
-    """A small v2 dataset (train: 2 scenes in 2 shards, val: 1 scene) with 3D objects."""
+def fake_build(tmp_path_factory):
+    """A small dataset in the current schema (train: 2 scenes in 2 shards, val: 1 scene) with 3D objects."""
     from tests.records.fake_scenes import SPEC, build_fake_scene
     from pipelines.common import BuildOptions, ShardPlan, run_build
 
-    root = tmp_path_factory.mktemp("fake_v2") / "ds"
+    root = tmp_path_factory.mktemp("fake_build") / "ds"
     plans = [
         ShardPlan("train", 0, [("s0", 0, 3)]),
         ShardPlan("train", 1, [("s/1", 1, 4)]),

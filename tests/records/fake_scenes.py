@@ -18,12 +18,13 @@ SIZE = 32
 
 
 def fake_frames(scene_id: str, seed: int, num_views: int) -> Iterator[dict[str, Any]]:
-    """View v shows two shapes moving with v, on noise drawn from ``seed``."""
+    """View v shows two shapes moving with v, on noise drawn from ``seed``; scene seed 1 has no depth in view 2."""
     rng = np.random.default_rng(seed)
     yy, xx = np.mgrid[0:SIZE, 0:SIZE] + 0.5
     for view in range(num_views):
         image = rng.integers(0, 255, (SIZE, SIZE, 3), dtype=np.uint8)
         depth = np.full((SIZE, SIZE), 2.0 + 0.01 * view)
+        depth[0, :6] = [np.nan, 0.001, 32.767, 32.768, 40.0, 65.535]  # unknown, and the ends of the 16-bit range
         cx, cy = 8 + view % 8, 10 + (seed % 5)
         disc = (xx - cx) ** 2 + (yy - cy) ** 2 < 25
         square = (np.abs(xx - 22) < 4) & (np.abs(yy - 20 - view % 3) < 4)
@@ -31,7 +32,8 @@ def fake_frames(scene_id: str, seed: int, num_views: int) -> Iterator[dict[str, 
         K = np.array([[30.0, 0, SIZE / 2], [0, 30.0, SIZE / 2], [0, 0, 1]])
         pose = np.eye(4)
         pose[0, 3] = 0.1 * view
-        yield frame_row(scene_id, view, encode_image(image), K, pose, instances, SIZE, SIZE, encode_depth(depth))
+        depth_png = None if (seed, view) == (1, 2) else encode_depth(depth)  # one view without depth
+        yield frame_row(scene_id, view, encode_image(image), K, pose, instances, SIZE, SIZE, depth_png)
 
 
 def fake_objects(scene_id: str, seed: int) -> list[dict[str, Any]]:

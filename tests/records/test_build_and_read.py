@@ -10,9 +10,11 @@ import pytest
 from torch.utils.data import DataLoader
 
 from tests.records.fake_scenes import SPEC, build_fake_scene
+from tests.records.old_writer import write_old_file
 from pipelines.common import BuildOptions, ShardPlan, run_build
 from usl.records import RecordsDataset, SceneStream, decode_mask
 from usl.errors import UslError
+from usl.records.schema import file_schema_version
 
 REPO = Path(__file__).parents[2]  # children import tests.records.* from the repository root
 
@@ -152,3 +154,20 @@ def test_finished_shard_in_an_older_layout_is_rebuilt_not_mixed_in(tmp_path):
     assert json.loads((out / "manifest.json").read_text())["splits"]["train"]["shards"][0]["frames"]["file"] == (
         "frames/train/frames-00000.parquet"
     )
+
+
+def test_finished_shard_of_an_older_schema_is_rebuilt_not_mixed_in(tmp_path):
+    """A build begun by a usl that wrote v2 (same paths) and resumed now: its v2 shard is redone in v3."""
+    out = tmp_path / "ds"
+    plans = make_plans(num_scenes=4, per_shard=2)
+    build(out, plans=plans)
+    before = checksums(out)
+    marker = out / ".build" / "train-00000.json"
+    result = json.loads(marker.read_text())
+    frames = out / result["frames"]["file"]
+    result["frames"].update(write_old_file(frames, frames.with_name("v2.parquet"), "frames", 2))
+    frames.with_name("v2.parquet").replace(frames)
+    marker.write_text(json.dumps(result))
+    summary = build(out, plans=plans)
+    assert (summary.kept_shards, summary.built_shards) == (1, 1)
+    assert checksums(out) == before and file_schema_version(frames) == 3

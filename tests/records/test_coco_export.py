@@ -15,13 +15,13 @@ from usl.cli.records import main as records_cli
 
 
 @pytest.fixture(scope="module")
-def export(fake_v2, tmp_path_factory):
+def export(fake_build, tmp_path_factory):
     out = tmp_path_factory.mktemp("coco")
     assert (
         records_cli(
             [
                 "export-coco",
-                str(fake_v2),
+                str(fake_build),
                 "--split",
                 "train",
                 "--out",
@@ -49,9 +49,9 @@ def test_ground_truth_against_itself_has_ap_one(export):
         assert evaluator.stats[0] == pytest.approx(1.0) and evaluator.stats[1] == pytest.approx(1.0)
 
 
-def test_masks_boxes_and_ids_match_the_records(export, fake_v2):
+def test_masks_boxes_and_ids_match_the_records(export, fake_build):
     coco, _ = export
-    records = RecordsDataset(fake_v2, "train")
+    records = RecordsDataset(fake_build, "train")
     rows = [row for scene in records.scene_ids for row in records.read_scene(scene)]
     assert len(coco.imgs) == len(rows) == 7
     for image_id, row in zip(sorted(coco.imgs), rows):

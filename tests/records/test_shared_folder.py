@@ -12,6 +12,7 @@ import pytest
 
 from tests.records import fake_scenes
 from pipelines.common import BuildOptions, run_build
+from tests.records.old_writer import write_old_file
 from tests.records.shared_build import NUM_SHARDS, plans
 from usl.records.claims import host_identity
 from usl.cli.records import main as records_main
@@ -178,3 +179,21 @@ def test_gather_merges_parts_built_apart(reference, tmp_path, capsys):
     assert records_main(["gather", *map(str, parts), "--out", str(tmp_path / "corrupt")]) == 2
     assert f"{shard}: sha256 does not match" in capsys.readouterr().err
     assert not list((tmp_path / "corrupt").rglob("*.tmp-*"))
+
+
+def test_gather_refuses_a_part_of_an_older_schema_before_writing(reference, tmp_path, capsys):
+    """Parts built by a usl that wrote v2 would mix versions in one dataset: refused in one line."""
+    parts = [tmp_path / f"part{i}" for i in range(3)]
+    for index, part in enumerate(parts):
+        build(part, num_shards=3, shard_index=index)
+    marker = parts[1] / ".build" / "train-00001.json"
+    result = json.loads(marker.read_text())
+    frames = parts[1] / result["frames"]["file"]
+    result["frames"].update(write_old_file(frames, frames.with_name("v2.parquet"), "frames", 2))
+    frames.with_name("v2.parquet").replace(frames)
+    marker.write_text(json.dumps(result))
+    out = tmp_path / "gathered"
+    assert records_main(["gather", *map(str, parts), "--out", str(out)]) == 2
+    error = capsys.readouterr().err.strip()
+    assert error.count("\n") == 0 and f"{frames}: record schema v2, but this usl writes v3" in error
+    assert not out.exists()

@@ -3,12 +3,13 @@
 import json
 import shutil
 
+import numpy as np
 import pyarrow.parquet as pq
 import pytest
 
 from tests.records.fake_scenes import SPEC, build_fake_scene
 from pipelines.common import BuildOptions, ShardPlan, run_build
-from usl.records import RecordsDataset
+from usl.records import RecordsDataset, encode_depth
 from usl.errors import UslError
 from usl.cli.records import main as records_cli
 from usl.records.validate import validate_dataset
@@ -86,6 +87,8 @@ def test_bad_content_is_named(dataset, tmp_path):
     rows[1]["instances"][0]["box_xyxy"] = [-3.0, 0.0, 10.0, 10.0]
     rows[2]["cam_to_world"][0] = 2.0
     rows[3]["instances"][1]["category_id"] = 1
+    rows[4]["depth"]["bytes"] = rows[4]["image"]["bytes"]  # an 8-bit colour PNG is no depth map
+    rows[6]["depth"]["bytes"] = encode_depth(np.ones((8, 8)))
     table = pq.read_table(path)
     pq.write_table(type(table).from_pylist(rows, schema=table.schema), path)
     manifest = json.loads((root / "manifest.json").read_text())
@@ -97,3 +100,6 @@ def test_bad_content_is_named(dataset, tmp_path):
     assert "scene 's0' view 1: instance 7: box_xyxy" in problems
     assert "scene 's0' view 2: cam_to_world rotation is not orthonormal" in problems
     assert "scene 's1' view 1: instance 9 is category 2 here but 1 in another view" in problems
+    assert "scene 's1' view 1: depth bytes are not a 16-bit PNG" in problems
+    assert "scene 's1' view 3: depth is 8x8, row says 32x32" in problems
+    assert "scene 's1' view 2: depth" not in problems  # no depth in that view (fake_scenes): nothing to check

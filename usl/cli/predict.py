@@ -10,8 +10,9 @@ input view (the full K in its ``extras``) and the image as a textured plane behi
 ``--formats`` adds ``html`` (a 3D viewer that opens at the input camera; offline, one file),
 ``obj`` and ``ply`` (objects only); and ``<name>_overlay.png``, the meshes rendered over the image
 with boxes and scores. Only glTF (and the page) keeps each object's category and score: an OBJ keeps
-the objects apart as named groups with one material each (trimesh loads them as separate meshes),
-a PLY is one merged mesh with a vertex colour per object.
+the objects apart as named groups with one material each (trimesh's load_scene and Open3D's
+read_triangle_model load them as separate meshes; Open3D's read_triangle_mesh merges them, as it
+does a GLB's), a PLY is one merged mesh with a vertex colour per object.
 
 ``--fov auto`` reads EXIF FocalLengthIn35mmFilm (matched on the diagonal, as the EXIF standard
 does); without it, it assumes 60 degrees and says so.

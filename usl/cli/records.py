@@ -1,11 +1,11 @@
 """``usl-records``: validate a dataset folder, summarise it (counts and a contact sheet), migrate a
-schema v1 folder to v2 in place, export a split as COCO instances JSON, or gather build folders
-made on separate machines into one.
+folder of an older record schema (v1, v2) to the current one (v3) in place, export a split as COCO
+instances JSON, or gather build folders made on separate machines into one.
 
     usl-records validate data/scene_shapes               # schema, checksums, masks, boxes, ids, cameras
     usl-records validate data/hypersim --split val --no-images
     usl-records info data/scene_shapes --sheet sheet.png # counts per split/category + a contact sheet
-    usl-records migrate data/old_v1_dataset              # v1 -> v2 in place (atomic, resumable)
+    usl-records migrate data/old_dataset                 # v1 or v2 -> v3 in place (atomic, resumable)
     usl-records export-coco data/scene_shapes --split val --out val_coco.json --images-dir val_images
     usl-records gather part0 part1 part2 --out data/hypersim  # --num-shards/--shard-index builds
 """
@@ -41,7 +41,9 @@ def parser():
     info.add_argument("--scenes", type=int, default=4, help="scenes on the contact sheet")
     info.add_argument("--views", type=int, default=4, help="views per scene on the contact sheet")
     info.add_argument("--json", action="store_true", help="print counts as JSON")
-    migrate = command("migrate", "convert a schema v1 dataset folder to v2 in place (atomic, resumable)")
+    migrate = command(
+        "migrate", "convert a schema v1 or v2 dataset folder to v3 in place (atomic, resumable; depth becomes an Image)"
+    )
     migrate.add_argument("root", type=Path, help="dataset folder (with manifest.json)")
     coco = command("export-coco", "one split as COCO instances JSON (pycocotools, detectron2)")
     coco.add_argument("root", type=Path, help="dataset folder (with manifest.json)")

@@ -150,15 +150,32 @@ def scene_glb(scene: trimesh.Scene, K: np.ndarray, width: int, height: int) -> b
     return finish_glb(scene.export(file_type="glb"), camera_extras(K, width, height))
 
 
+ARRAY_BUFFER, ELEMENT_ARRAY_BUFFER = 34962, 34963  # glTF bufferView targets: vertex data, indices
+
+
+def _set_buffer_view_targets(tree: dict[str, Any]) -> None:
+    """Mark the buffer views of vertex attributes and indices as such (trimesh leaves them unset; the
+    Khronos validator hints at it, and some loaders upload such views only when marked)."""
+    for mesh in tree.get("meshes", []):
+        for primitive in mesh["primitives"]:
+            uses = [(a, ARRAY_BUFFER) for a in primitive["attributes"].values()]
+            uses += [(primitive["indices"], ELEMENT_ARRAY_BUFFER)] if "indices" in primitive else []
+            for accessor, target in uses:
+                view = tree["accessors"][accessor].get("bufferView")
+                if view is not None:
+                    tree["bufferViews"][view]["target"] = target
+
+
 def finish_glb(glb: bytes, extras: dict[str, Any]) -> bytes:
-    """``extras`` added to the first camera, the ``IMAGE_NODE`` mesh's materials made unlit: the JSON
-    chunk is rewritten, the binary one kept."""
+    """``extras`` added to the first camera, the ``IMAGE_NODE`` mesh's materials made unlit, buffer
+    view targets set: the JSON chunk is rewritten, the binary one kept."""
     magic, version, _ = struct.unpack_from("<4sII", glb, 0)
     json_length, json_type = struct.unpack_from("<I4s", glb, 12)
     if magic != b"glTF" or version != 2 or json_type != b"JSON":
         raise ValueError("not a glTF 2.0 binary with its JSON chunk first")
     tree = json.loads(glb[20 : 20 + json_length])
     tree["cameras"][0].setdefault("extras", {}).update(extras)
+    _set_buffer_view_targets(tree)
     for node in tree["nodes"]:
         if node.get("name") == IMAGE_NODE and "mesh" in node:
             for primitive in tree["meshes"][node["mesh"]]["primitives"]:

@@ -1,4 +1,4 @@
-"""Sharded Parquet multi-view records (docs/design.md §3): schema, encoding, writing, reading (v1 and v2),
+"""Sharded Parquet multi-view records (docs/design.md §3): schema, encoding, writing, reading (v1, v2 and v3),
 validation, migration and COCO export.
 
 The reader (a torch ``IterableDataset``) is imported on first use, so tools that only write or

@@ -19,7 +19,7 @@ from typing import Any, Iterable
 
 from usl.errors import UslError
 from .atomic import write_json_atomic
-from .schema import shard_file
+from .schema import SCHEMA_VERSION, file_schema_version, shard_file
 from .shards import ShardResult, shard_paths, shard_temp_path, verify_file
 from .tempfiles import temp_path
 
@@ -141,9 +141,13 @@ class BuildState:
         if result is None:
             return None
         files = [result["frames"]] + ([result["objects"]] if result["objects"] else [])
-        # A shard of an older schema's layout (a build begun by an older usl) is rebuilt, not mixed in.
+        # A shard of an older schema (a build begun by an older usl) is rebuilt, not mixed in.
         stale_layout = result["frames"]["file"] != shard_file("frames", split, index)
-        if stale_layout or any(verify_file(self.root, info) for info in files):
+        if (
+            stale_layout
+            or any(verify_file(self.root, info) for info in files)
+            or any(file_schema_version(self.root / info["file"]) != SCHEMA_VERSION for info in files)
+        ):
             self._marker(split, index).unlink(missing_ok=True)
             return None
         return result

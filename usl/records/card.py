@@ -119,7 +119,9 @@ def dataset_card(manifest: dict[str, Any]) -> str:
         "",
         f"Multi-view records made with usl (record schema version {SCHEMA_VERSION}): "
         "one row per view with its image, camera and instance masks (COCO RLE), and, where the dataset "
-        "has them, the 3D ground-truth objects. Conventions: metres, OpenCV camera axes, pixel centres at +0.5.",
+        "has them, the 3D ground-truth objects. Conventions: metres, OpenCV camera axes, pixel centres at +0.5; "
+        "`depth` is a 16-bit image of millimetres (PIL mode I;16, 0 = unknown): `np.asarray(row['depth']) / 1000` "
+        "is metres.",
         "",
         "| split | scenes | views | objects (3D) |",
         "|---|---|---|---|",
@@ -137,7 +139,7 @@ def dataset_card(manifest: dict[str, Any]) -> str:
         "## Loading",
         "",
         "```python",
-        "from datasets import load_dataset            # Hugging Face: images decode to PIL",
+        "from datasets import load_dataset            # Hugging Face: image and depth decode to PIL",
         'frames = load_dataset(ROOT, split="train")   # the objects table: load_dataset(ROOT, "objects", split="train")',
         "import pandas as pd",
         'df = pd.read_parquet(f"{ROOT}/frames/train")',

@@ -38,11 +38,12 @@ def encode_image(rgb: np.ndarray, codec: str = "png", quality: int = 95) -> byte
     return buf.tobytes()
 
 
-def image_bytes(image: bytes | dict[str, Any]) -> bytes:
-    """The encoded bytes of a frame's ``image``: an Image struct ``{bytes, path}`` (v2) or bytes (v1)."""
+def image_bytes(image: bytes | dict[str, Any], field: str = "image") -> bytes:
+    """The encoded bytes of a frame's ``image`` or ``depth``: an Image struct ``{bytes, path}`` (image
+    from v2, depth from v3) or the bytes themselves (earlier versions)."""
     if isinstance(image, dict):
         if image.get("bytes") is None:
-            raise UslError(f"image struct has no embedded bytes (path {image.get('path')!r}); records embed images")
+            raise UslError(f"{field} struct has no embedded bytes (path {image.get('path')!r}); records embed them")
         return image["bytes"]
     return image
 
@@ -77,8 +78,10 @@ def encode_depth(depth_m: np.ndarray) -> bytes:
     return buf.tobytes()
 
 
-def decode_depth(data: bytes) -> np.ndarray:
-    """16-bit PNG of millimetres -> float32 metres with NaN where unknown."""
+def decode_depth(data: bytes | dict[str, Any]) -> np.ndarray:
+    """A frame's ``depth`` (Image struct, or the 16-bit PNG bytes of millimetres) -> float32 metres
+    with NaN where unknown."""
+    data = image_bytes(data, "depth")
     if not data:
         raise UslError("depth bytes are empty")
     mm = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
@@ -163,7 +166,8 @@ def frame_row(
     width: int,
     depth: bytes | None = None,
 ) -> dict[str, Any]:
-    """A frames-table row in the current schema; ``image`` is the encoded PNG/JPEG."""
+    """A frames-table row in the current schema; ``image`` is the encoded PNG/JPEG, ``depth`` the
+    16-bit PNG of ``encode_depth``."""
     return {
         "scene_id": str(scene_id),
         "view_id": int(view_id),
@@ -172,7 +176,7 @@ def frame_row(
         "width": int(width),
         "K": np.asarray(K, dtype=np.float64).reshape(9).tolist(),
         "cam_to_world": np.asarray(cam_to_world, dtype=np.float64).reshape(16).tolist(),
-        "depth": depth,
+        "depth": None if depth is None else {"bytes": depth, "path": None},
         "instances": instances,
     }
 

@@ -22,7 +22,7 @@ from usl.errors import UslError
 
 from .manifest import SHARD_FILE_KEYS, build_manifest, check_relative, publish_dataset
 from .names import check_name
-from .schema import shard_file
+from .schema import SCHEMA_VERSION, file_schema_version, shard_file
 from .shards import ShardResult, size_problem
 from .storage_faults import storage_faults
 from .tempfiles import temp_path
@@ -78,7 +78,20 @@ def _part_shard(part: Path, state: BuildState, split: str, index: int) -> dict[s
         check_relative(info["file"], f"{where} {table}")
         if info["file"] != shard_file(table, split, index):
             raise UslError(f"{where}: {table} file {info['file']!r} is not {shard_file(table, split, index)!r}")
+        _check_current_schema(part / info["file"], info)
     return marker
+
+
+def _check_current_schema(path: Path, info: dict[str, Any]) -> None:
+    """A part built by an older usl is refused: its shards would mix schema versions in one dataset."""
+    if size_problem(path, info):
+        return  # missing or truncated: reported when copied
+    version = file_schema_version(path)
+    if version != SCHEMA_VERSION:
+        raise UslError(
+            f"{path}: record schema v{version}, but this usl writes v{SCHEMA_VERSION}; rebuild the part "
+            "with this usl, or gather with the usl that built it and then run usl-records migrate"
+        )
 
 
 def _shard_files(marker: dict[str, Any]) -> list[tuple[str, dict[str, Any]]]:

@@ -65,8 +65,8 @@ class _OpenShard:
 class RecordsDataset:
     """One split of a dataset folder, indexed by scene.
 
-    ``read_scene(scene_id)`` returns that scene's frame rows (dicts in the current schema, v2,
-    also for a v1 dataset; sorted by view_id); ``views`` picks rows by position within the scene.
+    ``read_scene(scene_id)`` returns that scene's frame rows (dicts in the current schema, v3,
+    also for a v1 or v2 dataset; sorted by view_id); ``views`` picks rows by position within the scene.
     Decode fields with ``usl.records.decode_image`` / ``decode_depth`` / ``decode_mask``, naming
     ``source(scene_id)`` in errors. Every shard is checked against the manifest when first opened
     (its size); with ``verify="sha256"`` every shard's checksum is checked once, here, before any

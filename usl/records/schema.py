@@ -4,16 +4,18 @@ from __future__ import annotations
 
 import json
 from functools import lru_cache
+from pathlib import Path
 from typing import Any
 
 import pyarrow as pa
+import pyarrow.parquet as pq
 
 from data_specs import load_schema_spec
 
-from usl.errors import UslError
+from usl.errors import UslError, one_line
 
-SCHEMA_VERSION = 2  # what writers produce; readers also read every version in KNOWN_VERSIONS
-KNOWN_VERSIONS = (1, 2)
+SCHEMA_VERSION = 3  # what writers produce; readers also read every version in KNOWN_VERSIONS
+KNOWN_VERSIONS = (1, 2, 3)
 METADATA_KEY = b"usl"
 HF_METADATA_KEY = b"huggingface"  # Hugging Face datasets reads its features from here
 DOC_KEY = b"doc"
@@ -81,9 +83,10 @@ def _hf_feature(spec: Any) -> Any:
     return {f["name"]: _hf_feature(f["type"]) for f in spec["struct"]}
 
 
-def hf_features(table: str) -> dict[str, Any]:
-    """Hugging Face features of a v2 table: images decode to PIL; ``category_id`` stays the dataset's id."""
-    return {f["name"]: _hf_feature(f["type"]) for f in load_schema_spec(SCHEMA_VERSION)["tables"][table]["fields"]}
+def hf_features(table: str, version: int = SCHEMA_VERSION) -> dict[str, Any]:
+    """Hugging Face features of a table (v2 on): images, and from v3 depth, decode to PIL;
+    ``category_id`` stays the dataset's id."""
+    return {f["name"]: _hf_feature(f["type"]) for f in load_schema_spec(version)["tables"][table]["fields"]}
 
 
 def legacy_hf_features(table: str, categories: list[dict[str, Any]]) -> dict[str, Any]:
@@ -101,7 +104,7 @@ def legacy_hf_features(table: str, categories: list[dict[str, Any]]) -> dict[str
             return {k: swap(v, k) for k, v in feature.items()}
         return feature
 
-    return swap(hf_features(table))
+    return swap(hf_features(table, 2))
 
 
 def dataset_schema(table: str, metadata: dict[str, Any]) -> pa.Schema:
@@ -124,6 +127,15 @@ def read_metadata(schema: pa.Schema, path: str) -> dict[str, Any]:
     meta = json.loads(raw)
     check_version(meta.get("schema_version"), path)
     return meta
+
+
+def file_schema_version(path: Path) -> int:
+    """The record schema version a shard file was written in (read from its footer only)."""
+    try:
+        schema = pq.read_schema(path)
+    except Exception as exc:  # pyarrow raises several types for broken footers
+        raise UslError(f"{path}: unreadable Parquet footer ({one_line(exc)})") from exc
+    return read_metadata(schema, str(path))["schema_version"]
 
 
 def check_version(version: Any, path: str) -> None:

@@ -37,7 +37,7 @@ from .tempfiles import process_token, temp_path
 # Small row groups keep "read one scene" cheap; a long video scene spans several groups.
 MAX_ROWS_PER_GROUP = 64
 MAX_SCENES_PER_GROUP = 4
-PAYLOAD_COLUMNS = ("image.bytes", "depth")  # encoded images: already compressed, stored PLAIN
+PAYLOAD_COLUMNS = ("image.bytes", "depth.bytes")  # encoded images: already compressed, stored PLAIN
 # Instances (RLE strings, ids, boxes) are left uncompressed: ZSTD shrinks a frames shard by only
 # ~3% but costs ~20% more CPU per random read (measured on Scene-Shapes, 256 px).
 UNCOMPRESSED_FIELDS = ("instances",)

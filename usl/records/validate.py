@@ -17,12 +17,11 @@ import yaml
 from tqdm import tqdm
 
 from .card import CARD, card_configs
-from .encode import decode_image, decode_mask, encode_mask
+from .encode import decode_depth, decode_image, decode_mask, encode_mask
 from usl.errors import UslError, one_line
 from .manifest import load_manifest
 from .schema import (
     HF_METADATA_KEY,
-    SCHEMA_VERSION,
     hf_features,
     legacy_hf_features,
     read_metadata,
@@ -76,6 +75,22 @@ def _check_instance(inst: dict[str, Any], height: int, width: int) -> list[str]:
     return problems
 
 
+def _check_pictures(row: dict[str, Any]) -> list[str]:
+    """The image, and the depth map where there is one, decode at the row's size."""
+    problems = []
+    for name, decode in (("image", decode_image), ("depth", decode_depth)):
+        if row[name] is None:
+            continue
+        try:
+            shape = decode(row[name]).shape[:2]
+        except UslError as exc:
+            problems.append(str(exc))
+            continue
+        if shape != (row["height"], row["width"]):
+            problems.append(f"{name} is {shape[1]}x{shape[0]}, row says {row['width']}x{row['height']}")
+    return problems
+
+
 def _open_table(path: Path, table: str) -> tuple[pq.ParquetFile, int, list[str]]:
     """The file, its schema version, and what is wrong with its Arrow schema or metadata."""
     file = pq.ParquetFile(path, page_checksum_verification=True)
@@ -83,9 +98,11 @@ def _open_table(path: Path, table: str) -> tuple[pq.ParquetFile, int, list[str]]
     version = meta["schema_version"]
     if not file.schema_arrow.remove_metadata().equals(table_schema(table, version)):
         return file, version, [f"{path}: Arrow schema differs from the {table} schema v{version}"]
-    if version == SCHEMA_VERSION:
+    if version >= 2:
         stored = json.loads((file.schema_arrow.metadata or {}).get(HF_METADATA_KEY, b"null"))
-        accepted = (hf_features(table), legacy_hf_features(table, meta["categories"]))
+        accepted = [hf_features(table, version)]
+        if version == 2:
+            accepted.append(legacy_hf_features(table, meta["categories"]))
         if not isinstance(stored, dict) or stored.get("info", {}).get("features") not in accepted:
             return file, version, [f"{path}: '{HF_METADATA_KEY.decode()}' features metadata missing or stale"]
     return file, version, []
@@ -121,14 +138,7 @@ def _check_frames(path: Path, shard: dict[str, Any], categories: set[int], decod
             seen.setdefault(row["scene_id"], []).append(row_index)
             problems += [f"{where}: {p}" for p in _check_camera(row)]
             if decode_images:
-                try:
-                    image = decode_image(row["image"])
-                    if image.shape[:2] != (row["height"], row["width"]):
-                        problems.append(
-                            f"{where}: image is {image.shape[1]}x{image.shape[0]}, row says {row['width']}x{row['height']}"
-                        )
-                except UslError as exc:
-                    problems.append(f"{where}: {exc}")
+                problems += [f"{where}: {p}" for p in _check_pictures(row)]
             ids = [inst["instance_id"] for inst in row["instances"]]
             if len(ids) != len(set(ids)):
                 problems.append(f"{where}: duplicate instance ids {ids}")

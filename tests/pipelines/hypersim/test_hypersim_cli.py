@@ -7,6 +7,7 @@ import pytest
 from tests.pipelines.hypersim.hypersim_inputs import convert
 
 from pipelines.hypersim.cli import main
+from usl.records.schema import file_schema_version
 from usl.records import RecordsDataset, decode_image, load_manifest
 from usl.records.validate import validate_dataset
 
@@ -55,7 +56,8 @@ def test_filters_stride_and_stuff_exclusion(inputs, tmp_path):
         "48x36",
     )
     assert validate_dataset(out) == []
-    assert load_manifest(out)["schema_version"] == 2 and (out / "frames" / "train").is_dir()
+    assert load_manifest(out)["schema_version"] == 3 and (out / "frames" / "train").is_dir()
+    assert {file_schema_version(p) for p in (out / "frames").rglob("*.parquet")} == {3}  # depth an Image
     (rows,) = all_rows(out).values()
     assert [(r["scene_id"], r["view_id"]) for r in rows] == [("ai_001_001/cam_00", 0), ("ai_001_001/cam_00", 4)]
     categories = {i["category_id"] for r in rows for i in r["instances"]}

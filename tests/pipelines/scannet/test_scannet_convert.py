@@ -18,6 +18,7 @@ from pipelines.scannet.cli import main
 from pipelines.scannet.convert import SKIP_DEPTH, SKIP_POSE, ConvertOptions, ScanUnit, build_scene
 from pipelines.scannet.scannet_labels import ScanNetLabelsSource
 from pipelines.scannet.synthetic import SyntheticScan, write_label_map, write_labels, write_sens
+from usl.records.schema import file_schema_version
 from usl.records import RecordsDataset, decode_depth, decode_image, decode_mask, load_manifest
 from usl.records.validate import validate_dataset
 
@@ -70,7 +71,8 @@ def test_records_are_valid_and_complete(converted, synthetic):
     assert validate_dataset(converted) == []
     manifest = load_manifest(converted)
     assert (
-        manifest["schema_version"] == 2
+        manifest["schema_version"] == 3
+        and {file_schema_version(p) for p in (converted / "frames").rglob("*.parquet")} == {3}  # depth an Image
         and (converted / "frames" / "train").is_dir()
         and (converted / "README.md").exists()
     )

@@ -8,6 +8,7 @@ import pytest
 from tests.pipelines.scene_shapes.scene_shapes_oracle import backproject, distance_to_mesh, iou, render_depth_alone
 
 from pipelines.scene_shapes.cli import main
+from usl.records.schema import file_schema_version
 from usl.records import RecordsDataset, decode_depth, decode_mask, frame_K, frame_pose, load_manifest, object_mesh
 from usl.records.validate import validate_dataset
 
@@ -99,7 +100,8 @@ def test_cameras_are_rigid_and_share_the_stored_intrinsics(tiny_dataset):
 def test_dataset_passes_the_record_validator(tiny_dataset):
     assert validate_dataset(tiny_dataset) == []
     splits = sorted(load_manifest(tiny_dataset)["splits"])
-    assert load_manifest(tiny_dataset)["schema_version"] == 2 and (tiny_dataset / "README.md").exists()
+    assert load_manifest(tiny_dataset)["schema_version"] == 3 and (tiny_dataset / "README.md").exists()
+    assert {file_schema_version(p) for p in (tiny_dataset / "frames").rglob("*.parquet")} == {3}  # depth an Image
     assert sorted(p.name for p in (tiny_dataset / "frames").iterdir()) == splits
     assert sorted(p.name for p in (tiny_dataset / "objects").iterdir()) == splits
 
