@@ -42,4 +42,4 @@ export USL_TRAIN_BATCH
   --config "$CONFIG" --out "$RUN/train" data.root="$TRAIN" "$@" \
   > "$RUN/train.log" 2>&1 || { tail -5 "$RUN/train.log"; exit 1; }
 cat "$RUN/train_time.txt"
-evaluate_heldout "$DATA" "$RUN/train" "$RUN/eval" random,fixed,model 4 || echo "(see above: the main job's claim fails on this run)"
+evaluate_heldout "$DATA" "$RUN/train" "$RUN/eval" random,fixed,model "" 4 || echo "(see above: the main job's claim fails on this run)"

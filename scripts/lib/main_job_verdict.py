@@ -62,7 +62,7 @@ def mean_std(values: list[float]) -> tuple[float, float | None]:
 def markdown(builds: dict[int, dict], values: dict[str, dict[str, list[float]]]) -> str:
     seeds = ", ".join(str(s) for s in builds)
     views = sum(b["num_input_views"] for b in builds.values())
-    header = "| Model | " + " | ".join(c.title for c in TABLE_COLUMNS) + " |\n|:---|" + ":---:|" * len(TABLE_COLUMNS)
+    titles = " | ".join(c.title for c in TABLE_COLUMNS)
 
     def cell(metric_values: list[float], scale: float, decimals: int) -> str:
         if not metric_values:
@@ -72,29 +72,22 @@ def markdown(builds: dict[int, dict], values: dict[str, dict[str, list[float]]])
 
     lines = [
         f"Held-out Scene-Shapes builds (seeds {seeds}): every input view of every scene, {views} input views;",
-        "mean ± std over the builds.",
+        "mean ± std over the builds (Builds: how many scored the row).",
         "",
-        header,
+        f"| Model | {titles} | Builds |",
+        "|:---|" + ":---:|" * (len(TABLE_COLUMNS) + 1),
     ]
     for name, row in values.items():
-        lines.append(
-            f"| {name} | " + " | ".join(cell(row[c.metric], c.scale, c.decimals) for c in TABLE_COLUMNS) + " |"
-        )
-    lines += [
-        "",
-        "Every build:",
-        "",
-        header.replace("| Model |", "| Model | Seed |", 1).replace("|:---|", "|:---|:---:|", 1),
-    ]
+        cells = " | ".join(cell(row[c.metric], c.scale, c.decimals) for c in TABLE_COLUMNS)
+        lines.append(f"| {name} | {cells} | {max(len(v) for v in row.values())} |")
+    lines += ["", "Every build:", "", f"| Model | Seed | {titles} |", "|:---|:---:|" + ":---:|" * len(TABLE_COLUMNS)]
     for seed, report in builds.items():
         for predictor in report["predictors"]:
-            cells = [
-                "–"
-                if predictor["metrics"].get(c.metric) is None
-                else f"{predictor['metrics'][c.metric] * c.scale:.{c.decimals}f}"
+            cells = " | ".join(
+                cell([v] if (v := predictor["metrics"].get(c.metric)) is not None else [], c.scale, c.decimals)
                 for c in TABLE_COLUMNS
-            ]
-            lines.append(f"| {predictor['name']} | {seed} | " + " | ".join(cells) + " |")
+            )
+            lines.append(f"| {predictor['name']} | {seed} | {cells} |")
     return "\n".join(lines) + "\n"
 
 

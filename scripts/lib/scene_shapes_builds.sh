@@ -5,7 +5,7 @@
 #   build_scene_shapes OUT SEED SCENES [builder options]      # SCENES scenes and as many shape models
 #   experiment_builds DATA TRAIN_SCENES HELDOUT_SCENES [builder options, e.g. --quiet]
 #   heldout_builds DATA [builder options]                     # DATA/heldout/seed{1,2,3}, 20 scenes each
-#   evaluate_heldout DATA CHECKPOINT EVAL ROWS PICTURES       # every input view of those, mean ± std
+#   evaluate_heldout DATA CHECKPOINT EVAL ROWS FIRST_ROWS PICTURES   # every input view of those, mean ± std
 #
 # Both build the main job's format (8 views per scene at two heights, 128^2), or resume a build (a
 # finished one is verified and kept). experiment_builds makes a training build (seed 0) in
@@ -45,14 +45,20 @@ heldout_builds() {  # DATA [builder options]: DATA/heldout/seed<k> for each held
   done
 }
 
-evaluate_heldout() {  # DATA CHECKPOINT EVAL ROWS PICTURES: usl-eval of each build into EVAL/seed<k>, then the summary
-  local data=$1 checkpoint=$2 eval=$3 rows=$4 pictures=$5 seed status=0 pids=()
+evaluate_heldout() {  # DATA CHECKPOINT EVAL ROWS FIRST_ROWS PICTURES
+  # usl-eval of each build into EVAL/seed<k> with ROWS (FIRST_ROWS and PICTURES pictures added on the
+  # first build only, as scoring every view is the bulk of the job's time), then the summary
+  local data=$1 checkpoint=$2 eval=$3 rows=$4 first_rows=$5 pictures=$6 seed status=0 pids=()
   mkdir -p "$eval"
-  # side by side, as they share the cores and end together; pictures of the first build only
-  for seed in "${HELDOUT_SEEDS[@]}"; do
+  for seed in "${HELDOUT_SEEDS[@]}"; do  # side by side: they share the cores and end together
+    local here=$rows shown=0
+    if [[ $seed == "${HELDOUT_SEEDS[0]}" ]]; then
+      here=$rows${first_rows:+,$first_rows}
+      shown=$pictures
+    fi
     OMP_NUM_THREADS=1 python3 -m usl.cli.evaluate "$data/heldout/seed$seed" --split train --input-views all \
-      --checkpoint "$checkpoint" --rows "$rows" --out "$eval/seed$seed" --quiet \
-      --pictures "$([[ $seed == "${HELDOUT_SEEDS[0]}" ]] && echo "$pictures" || echo 0)" >"$eval/seed$seed.log" 2>&1 &
+      --checkpoint "$checkpoint" --rows "$here" --out "$eval/seed$seed" --quiet --pictures "$shown" \
+      >"$eval/seed$seed.log" 2>&1 &
     pids+=($!)
   done
   for seed in "${HELDOUT_SEEDS[@]}"; do
