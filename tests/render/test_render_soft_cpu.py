@@ -1,6 +1,8 @@
 """The soft rasterizer's compiled CPU path against its torch path (the oracle, which CUDA runs) and
 the dense reference: the same pairs, and the same silhouettes and gradients."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import torch
@@ -9,7 +11,7 @@ import trimesh
 from tests.render.render_oracle import intrinsics
 from tests.render.test_render_soft import pack
 from usl.render import SoftRasterSettings, rasterize_soft, rasterize_soft_dense, soft_cpu
-from usl.render.screen import blur_margin_pixels, face_pixel_boxes, ndc_scale, project_faces
+from usl.render.screen import ndc_scale, project_faces
 from usl.render.soft import _select_pairs
 
 pytestmark = pytest.mark.skipif(soft_cpu.numba is None, reason="numba is not installed")
@@ -47,10 +49,9 @@ def test_compiled_selection_keeps_the_torch_paths_pairs_in_its_order(faces_per_p
     screen = project_faces(verts, faces, window, K, settings.near)
     assert not screen.visible.all()  # culled faces are part of the check
     face, pixel = _select_pairs(screen, window, HEIGHT, WIDTH, settings)
-    boxes = face_pixel_boxes(screen, blur_margin_pixels(settings.blur_radius, HEIGHT, WIDTH), HEIGHT, WIDTH)
-    compiled = soft_cpu.select_pairs(screen, window, boxes, HEIGHT, WIDTH, ndc_scale(HEIGHT, WIDTH) ** 2, settings)
-    assert torch.equal(torch.from_numpy(compiled[0]).long(), face)
-    assert torch.equal(torch.from_numpy(compiled[1]).long(), pixel)
+    compiled = soft_cpu.select_pairs(screen, window, 4, HEIGHT, WIDTH, settings)
+    assert torch.equal(torch.from_numpy(compiled.face).long(), face)
+    assert torch.equal(torch.from_numpy(compiled.pixel).long(), pixel)
     uncapped = torch.bincount(
         _select_pairs(screen, window, HEIGHT, WIDTH, SoftRasterSettings(blur_radius=3e-3, faces_per_pixel=None))[1]
     )
@@ -96,18 +97,12 @@ def test_log_transparency_backward_passes_gradcheck():
     settings = SoftRasterSettings(sigma=2e-2, blur_radius=5e-2, faces_per_pixel=None)
     keep = torch.nonzero(window == 2).squeeze(1)[:6]  # the box: big faces, pairs inside and outside
     screen = project_faces(verts, faces[keep], window[keep], K, settings.near)
-    boxes = face_pixel_boxes(screen, blur_margin_pixels(settings.blur_radius, HEIGHT, WIDTH), HEIGHT, WIDTH)
-    face, pixel, _ = soft_cpu.select_pairs(
-        screen, window[keep], boxes, HEIGHT, WIDTH, ndc_scale(HEIGHT, WIDTH) ** 2, settings
-    )
-    assert 200 < len(face) < 5_000
+    assert 200 < len(soft_cpu.select_pairs(screen, window[keep], 4, HEIGHT, WIDTH, settings).face) < 5_000
     scale = ndc_scale(HEIGHT, WIDTH) ** 2 / settings.sigma
-    num_pixels = 4 * HEIGHT * WIDTH
 
-    def log_transparency(plane):  # gradcheck perturbs plane in place: the numpy view follows
-        return soft_cpu.LogTransparency.apply(
-            plane, plane.detach().numpy(), face, pixel, num_pixels, HEIGHT, WIDTH, scale
-        )
+    def log_transparency(plane):  # the selection is part of the function: reselected from the perturbed plane
+        pairs = soft_cpu.select_pairs(replace(screen, plane=plane), window[keep], 4, HEIGHT, WIDTH, settings)
+        return soft_cpu.LogTransparency.apply(plane, pairs, 4 * HEIGHT * WIDTH, scale)
 
     plane = screen.plane.detach().clone().requires_grad_(True)
     assert torch.autograd.gradcheck(log_transparency, (plane,), eps=1e-7, atol=1e-6, rtol=1e-5)

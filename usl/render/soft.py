@@ -116,13 +116,8 @@ def rasterize_soft(
     scale = ndc_scale(height, width) ** 2 / settings.sigma
     num_pixels = num_windows * height * width
     if soft_cpu.available(screen.plane):
-        boxes = face_pixel_boxes(screen, blur_margin_pixels(settings.blur_radius, height, width), height, width)
-        face, pixel, plane = soft_cpu.select_pairs(
-            screen, face_window, boxes, height, width, ndc_scale(height, width) ** 2, settings
-        )
-        log_transparency = soft_cpu.LogTransparency.apply(
-            screen.plane, plane, face, pixel, num_pixels, height, width, scale
-        )
+        pairs = soft_cpu.select_pairs(screen, face_window, num_windows, height, width, settings)
+        log_transparency = soft_cpu.LogTransparency.apply(screen.plane, pairs, num_pixels, scale)
     else:
         log_transparency = _torch_log_transparency(screen, face_window, num_pixels, height, width, scale, settings)
     return (-torch.expm1(log_transparency)).view(num_windows, height, width)
