@@ -48,8 +48,11 @@ def main() -> None:
     p.add_argument("a", type=Path, help="first checkout (e.g. the base commit's worktree)")
     p.add_argument("b", type=Path, help="second checkout (e.g. this one: .)")
     p.add_argument("--rounds", type=int, default=3, help="A, B pairs run")
-    p.add_argument("count_ops_args", nargs="*", help="after --: count_ops.py's arguments (include --cpu-steps N)")
-    args = p.parse_args()
+    p.epilog = "after --: count_ops.py's arguments, --cpu-steps N included"
+    argv = sys.argv[1:]
+    split = argv.index("--") if "--" in argv else len(argv)
+    args = p.parse_args(argv[:split])
+    args.count_ops_args = argv[split + 1 :]
     if not any(a.startswith("--cpu-steps") for a in args.count_ops_args):
         p.error("pass count_ops.py's --cpu-steps N after --")
     trees = [args.a.resolve(), args.b.resolve()]

@@ -10,11 +10,11 @@ import trimesh
 
 from tests.render.render_oracle import intrinsics
 from tests.render.test_render_soft import pack
-from usl.render import SoftRasterSettings, rasterize_soft, rasterize_soft_dense, soft_cpu
+from usl.render import SoftRasterSettings, compiled, rasterize_soft, rasterize_soft_dense, soft_cpu
 from usl.render.screen import ndc_scale, project_faces
 from usl.render.soft import _select_pairs
 
-pytestmark = pytest.mark.skipif(soft_cpu.numba is None, reason="numba is not installed")
+pytestmark = pytest.mark.skipif(compiled.numba is None, reason="numba is not installed")
 
 HEIGHT, WIDTH = 40, 56
 
@@ -117,9 +117,9 @@ def test_exact_ties_between_edge_distances_share_the_gradient_as_torch_minimum_d
     settings = SoftRasterSettings(sigma=1e-2, blur_radius=0.2, faces_per_pixel=None)
     screen = project_faces(verts, faces, window, K, settings.near)
     grads = []
-    for compiled in (True, False):
+    for use_compiled in (True, False):
         with monkeypatch.context() as patch:
-            patch.setattr(soft_cpu, "available", lambda table, on=compiled: on)
+            patch.setattr(soft_cpu, "available", lambda table, on=use_compiled: on)
             plane = screen.plane.detach().clone().requires_grad_(True)
             screen_copy = type(screen)(screen.xy, plane, screen.depths, screen.visible)
             patch.setattr("usl.render.soft.project_faces", lambda *args: screen_copy)

@@ -4,8 +4,7 @@
 runs as torch ops: the no-grad selection of (face, pixel) pairs (a dozen elementwise ops on every
 candidate pair, then one big sort for the nearest K per pixel) and autograd through the signed
 distance of the kept pairs (dozens of small ops forward and backward). Here both are loops compiled
-by numba (as the NMS's CPU loop in ``usl.model.ops.nms``; cached on disk, compiled once per machine
-and dtype):
+by numba (:mod:`usl.render.compiled`):
 
 * :func:`select_pairs` walks each face's pixel box once, with the torch path's arithmetic in the
   faces' dtype, so it keeps exactly the same pairs in the same order (face after face, row-major in
@@ -17,7 +16,7 @@ and dtype):
   Per pair it stores a few bytes, not autograd's dozens of tensors, so no checkpointing is needed.
 
 The torch path stays for CUDA (and is the oracle of the tests); these loops run on CPU tensors of
-float32 or float64 when numba imports. The loops allocate nothing: their outputs are preallocated.
+float32 or float64 when numba imports.
 """
 
 from __future__ import annotations
@@ -28,6 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from usl.render.compiled import compiled, serves
 from usl.render.screen import ScreenFaces, blur_margin_pixels, face_pixel_boxes, ndc_scale
 
 Tensor = torch.Tensor
@@ -36,7 +36,7 @@ _NUMPY_DTYPES = {torch.float32: np.float32, torch.float64: np.float64}
 
 def available(table: Tensor) -> bool:
     """Whether the compiled loops serve faces held in ``table`` (a CPU float32/float64 tensor)."""
-    return numba is not None and table.device.type == "cpu" and table.dtype in _NUMPY_DTYPES
+    return serves(table) and table.dtype in _NUMPY_DTYPES
 
 
 @dataclass
@@ -144,18 +144,7 @@ class LogTransparency(torch.autograd.Function):
 # Face table columns: corners x0 y0 x1 y1 x2 y2 (0-5), edge vectors ex0 ey0 ex1 ey1 ex2 ey2 (6-11),
 # inverse squared edge lengths (12-14), 1 / twice the signed area (15), then w0 w1 w2 z0 z1 z2
 # (16-21). Edge k runs from corner k + 1; its start, vector and inverse length are in _EDGE_COLUMNS.
-try:  # numba is a dependency; without it the torch path serves the CPU too
-    import numba
-except ImportError:
-    numba = None
-
-
-def _compiled(loop):
-    """numba's error model: x / 0 gives inf or nan as in torch; cache: compiled once per machine, on disk."""
-    return numba.njit(cache=True, nogil=True, error_model="numpy")(loop) if numba else loop
-
-
-@_compiled
+@compiled
 def _edge_sq_distance(px, py, ax, ay, ex, ey, il, zero, one):  # pragma: no cover
     """``usl.render.screen.signed_sq_distance`` for one edge, op for op: the squared distance, the
     barycentric numerator, and the projection before and after its clamp to [0, 1]."""
@@ -166,7 +155,7 @@ def _edge_sq_distance(px, py, ax, ay, ex, ey, il, zero, one):  # pragma: no cove
     return ox * ox + oy * oy, ex * ry - ey * rx, u, t, rx, ry, ox, oy
 
 
-@_compiled
+@compiled
 def _tie_share(a, b, zero_if_above):  # pragma: no cover
     """Share code of ``a`` in ``torch.minimum(a, b)``'s gradient: 1 all, 2 half, 0 none; combined
     with the share of the minimum itself (``zero_if_above``: that share, 0 for none)."""
@@ -174,7 +163,7 @@ def _tie_share(a, b, zero_if_above):  # pragma: no cover
     return 0 if own == 0 or zero_if_above == 0 else own + zero_if_above - 1
 
 
-@_compiled
+@compiled
 def _select_loop(
     faces, ints, centres, constants, height, width, face_out, pixel_out, depth_out, dist_out, share_out, counts
 ):  # pragma: no cover
@@ -228,7 +217,7 @@ def _select_loop(
     return count
 
 
-@_compiled
+@compiled
 def _nearest_loop(
     face, pixel, depth_bits, dist, share, counts, k, bucket_bits, bucket_pair, keep, top_bits, top_pair
 ):  # pragma: no cover
@@ -278,7 +267,7 @@ def _nearest_loop(
     return kept
 
 
-@_compiled
+@compiled
 def _terms_loop(pixel, dist, share, constants, out, slope):  # pragma: no cover
     """out[pixel] += log sigmoid(d * scale), pair by pair in order (index_add's order), with torch's
     log_sigmoid arithmetic min(x, 0) - log1p(exp(-|x|)); slope: the derivative w.r.t. the minimum
@@ -292,7 +281,7 @@ def _terms_loop(pixel, dist, share, constants, out, slope):  # pragma: no cover
         slope[i] = -s if share[i] & 64 else s
 
 
-@_compiled
+@compiled
 def _terms_backward_loop(
     faces, face, pixel, share, slope, centres, constants, width, height, grad, grad_plane
 ):  # pragma: no cover
@@ -312,7 +301,7 @@ def _terms_backward_loop(
             _edge_backward(faces[f], grad_plane[f], px, py, g_edge, edge, zero, one)
 
 
-@_compiled
+@compiled
 def _edge_backward(c, grad, px, py, g, edge, zero, one):  # pragma: no cover
     """Adds g times the gradient of edge ``edge``'s squared distance to its face's columns."""
     ax, ex, il = (2, 6, 12) if edge == 0 else ((4, 8, 13) if edge == 1 else (0, 10, 14))
