@@ -76,7 +76,8 @@ def select_pairs(
     constants = np.array([ndc_scale(height, width) ** 2, settings.blur_radius, 0.0, 1.0], dtype=np_dtype)
     # pixel_centres' arithmetic: col.to(dtype) + 0.5
     centres = np.arange(max(height, width)).astype(np_dtype) + np_dtype(0.5)
-    count = _select_loop(faces, ints, centres, constants, height, width, face, pixel, depth, dist, share, counts)
+    row = np.empty((7, width), dtype=np_dtype)
+    count = _select_loop(faces, ints, centres, constants, height, width, face, pixel, depth, dist, share, counts, row)
     k = settings.faces_per_pixel
     if k is not None and count:
         count = _nearest_loop(
@@ -165,12 +166,15 @@ def _tie_share(a, b, zero_if_above):  # pragma: no cover
 
 @compiled
 def _select_loop(
-    faces, ints, centres, constants, height, width, face_out, pixel_out, depth_out, dist_out, share_out, counts
+    faces, ints, centres, constants, height, width, face_out, pixel_out, depth_out, dist_out, share_out, counts, row
 ):  # pragma: no cover
     """Every pair in the faces' boxes with ``d * ndc_scale**2 <= blur_radius``, face after face,
     row-major in the box: writes face, flat pixel, float32 clipped perspective depth, d and the
-    gradient shares, counts the pairs of each pixel, and returns how many pairs."""
+    gradient shares, counts the pairs of each pixel, and returns how many pairs. Each box row is
+    first evaluated branch-free into the scratch ``row`` (7, W) (a loop the compiler vectorizes),
+    then its pairs within the blur radius are written out."""
     scale2, blur, zero, one = constants[0], constants[1], constants[2], constants[3]
+    b0s, b1s, b2s, d0s, d1s, d2s, depths = row[0], row[1], row[2], row[3], row[4], row[5], row[6]
     count = 0
     for f in range(faces.shape[0]):
         nx, ny = ints[f, 3], ints[f, 4]
@@ -182,28 +186,32 @@ def _select_loop(
         il0, il1, il2, inv_area = c[12], c[13], c[14], c[15]
         w0, w1, w2, z0, z1, z2 = c[16], c[17], c[18], c[19], c[20], c[21]
         base, col0, row0 = ints[f, 0] * height, ints[f, 1], ints[f, 2]
-        for row in range(row0, row0 + ny):
-            py = centres[row]
-            for col in range(col0, col0 + nx):
-                px = centres[col]
-                d0, n0, _, _, _, _, _, _ = _edge_sq_distance(px, py, x1, y1, ex0, ey0, il0, zero, one)
-                d1, n1, _, _, _, _, _, _ = _edge_sq_distance(px, py, x2, y2, ex1, ey1, il1, zero, one)
-                d2, n2, _, _, _, _, _, _ = _edge_sq_distance(px, py, x0, y0, ex2, ey2, il2, zero, one)
+        for r in range(row0, row0 + ny):
+            py = centres[r]
+            for j in range(nx):
+                px = centres[col0 + j]
+                d0s[j], n0, _, _, _, _, _, _ = _edge_sq_distance(px, py, x1, y1, ex0, ey0, il0, zero, one)
+                d1s[j], n1, _, _, _, _, _, _ = _edge_sq_distance(px, py, x2, y2, ex1, ey1, il1, zero, one)
+                d2s[j], n2, _, _, _, _, _, _ = _edge_sq_distance(px, py, x0, y0, ex2, ey2, il2, zero, one)
                 b0, b1, b2 = n0 * inv_area, n1 * inv_area, n2 * inv_area
-                m01 = d0 if d0 <= d1 else d1  # torch.minimum (equal values are equal either way)
-                m = m01 if m01 <= d2 else d2
-                inside = b0 >= zero and b1 >= zero and b2 >= zero
-                dist = -m if inside else m
-                if not dist * scale2 <= blur:
-                    continue
+                b0s[j], b1s[j], b2s[j] = b0, b1, b2
                 # usl.render.screen.perspective_depth(clip=True), op for op
                 q0 = (b0 if b0 >= zero else zero) / w0
                 q1 = (b1 if b1 >= zero else zero) / w1
                 q2 = (b2 if b2 >= zero else zero) / w2
-                p = (base + row) * width + col
+                depths[j] = (q0 * z0 + q1 * z1 + q2 * z2) / (q0 + q1 + q2)
+            for j in range(nx):
+                d0, d1, d2 = d0s[j], d1s[j], d2s[j]
+                m01 = d0 if d0 <= d1 else d1  # torch.minimum (equal values are equal either way)
+                m = m01 if m01 <= d2 else d2
+                inside = b0s[j] >= zero and b1s[j] >= zero and b2s[j] >= zero
+                dist = -m if inside else m
+                if not dist * scale2 <= blur:
+                    continue
+                p = (base + r) * width + col0 + j
                 face_out[count] = f
                 pixel_out[count] = p
-                depth_out[count] = np.float32((q0 * z0 + q1 * z1 + q2 * z2) / (q0 + q1 + q2))
+                depth_out[count] = np.float32(depths[j])
                 dist_out[count] = dist
                 s01 = 1 if m01 < d2 else (2 if m01 == d2 else 0)
                 share_out[count] = (
