@@ -76,8 +76,10 @@ def select_pairs(
     constants = np.array([ndc_scale(height, width) ** 2, settings.blur_radius, 0.0, 1.0], dtype=np_dtype)
     # pixel_centres' arithmetic: col.to(dtype) + 0.5
     centres = np.arange(max(height, width)).astype(np_dtype) + np_dtype(0.5)
-    row = np.empty((7, width), dtype=np_dtype)
-    count = _select_loop(faces, ints, centres, constants, height, width, face, pixel, depth, dist, share, counts, row)
+    row, codes = np.empty((2, width), dtype=np_dtype), np.empty(width, dtype=np.int32)
+    count = _select_loop(
+        faces, ints, centres, constants, height, width, face, pixel, depth, dist, share, counts, row, codes
+    )
     k = settings.faces_per_pixel
     if k is not None and count:
         count = _nearest_loop(
@@ -166,15 +168,31 @@ def _tie_share(a, b, zero_if_above):  # pragma: no cover
 
 @compiled
 def _select_loop(
-    faces, ints, centres, constants, height, width, face_out, pixel_out, depth_out, dist_out, share_out, counts, row
+    faces,
+    ints,
+    centres,
+    constants,
+    height,
+    width,
+    face_out,
+    pixel_out,
+    depth_out,
+    dist_out,
+    share_out,
+    counts,
+    row,
+    codes,
 ):  # pragma: no cover
     """Every pair in the faces' boxes with ``d * ndc_scale**2 <= blur_radius``, face after face,
     row-major in the box: writes face, flat pixel, float32 clipped perspective depth, d and the
-    gradient shares, counts the pairs of each pixel, and returns how many pairs. Each box row is
-    first evaluated branch-free into the scratch ``row`` (7, W) (a loop the compiler vectorizes),
-    then its pairs within the blur radius are written out."""
+    gradient shares, counts the pairs of each pixel, and returns how many pairs.
+
+    Each box row is first evaluated without branches into the scratch ``row`` (2, W) (d, depth)
+    and ``codes`` (W,) (shares, bit 7: within the blur radius), a loop the compiler vectorizes;
+    then every pair of the row is written at the output's end, which advances only past the pairs
+    kept (no branch to mispredict)."""
     scale2, blur, zero, one = constants[0], constants[1], constants[2], constants[3]
-    b0s, b1s, b2s, d0s, d1s, d2s, depths = row[0], row[1], row[2], row[3], row[4], row[5], row[6]
+    dists, depths = row[0], row[1]
     count = 0
     for f in range(faces.shape[0]):
         nx, ny = ints[f, 3], ints[f, 4]
@@ -190,38 +208,39 @@ def _select_loop(
             py = centres[r]
             for j in range(nx):
                 px = centres[col0 + j]
-                d0s[j], n0, _, _, _, _, _, _ = _edge_sq_distance(px, py, x1, y1, ex0, ey0, il0, zero, one)
-                d1s[j], n1, _, _, _, _, _, _ = _edge_sq_distance(px, py, x2, y2, ex1, ey1, il1, zero, one)
-                d2s[j], n2, _, _, _, _, _, _ = _edge_sq_distance(px, py, x0, y0, ex2, ey2, il2, zero, one)
+                d0, n0, _, _, _, _, _, _ = _edge_sq_distance(px, py, x1, y1, ex0, ey0, il0, zero, one)
+                d1, n1, _, _, _, _, _, _ = _edge_sq_distance(px, py, x2, y2, ex1, ey1, il1, zero, one)
+                d2, n2, _, _, _, _, _, _ = _edge_sq_distance(px, py, x0, y0, ex2, ey2, il2, zero, one)
                 b0, b1, b2 = n0 * inv_area, n1 * inv_area, n2 * inv_area
-                b0s[j], b1s[j], b2s[j] = b0, b1, b2
+                m01 = d0 if d0 <= d1 else d1  # torch.minimum (equal values are equal either way)
+                m = m01 if m01 <= d2 else d2
+                inside = (b0 >= zero) & (b1 >= zero) & (b2 >= zero)
+                dist = -m if inside else m
+                dists[j] = dist
                 # usl.render.screen.perspective_depth(clip=True), op for op
                 q0 = (b0 if b0 >= zero else zero) / w0
                 q1 = (b1 if b1 >= zero else zero) / w1
                 q2 = (b2 if b2 >= zero else zero) / w2
                 depths[j] = (q0 * z0 + q1 * z1 + q2 * z2) / (q0 + q1 + q2)
-            for j in range(nx):
-                d0, d1, d2 = d0s[j], d1s[j], d2s[j]
-                m01 = d0 if d0 <= d1 else d1  # torch.minimum (equal values are equal either way)
-                m = m01 if m01 <= d2 else d2
-                inside = b0s[j] >= zero and b1s[j] >= zero and b2s[j] >= zero
-                dist = -m if inside else m
-                if not dist * scale2 <= blur:
-                    continue
-                p = (base + r) * width + col0 + j
-                face_out[count] = f
-                pixel_out[count] = p
-                depth_out[count] = np.float32(depths[j])
-                dist_out[count] = dist
                 s01 = 1 if m01 < d2 else (2 if m01 == d2 else 0)
-                share_out[count] = (
+                codes[j] = (
                     _tie_share(d0, d1, s01)
                     | (_tie_share(d1, d0, s01) << 2)
                     | (_tie_share(d2, m01, 1) << 4)
                     | (64 if inside else 0)
+                    | (128 if dist * scale2 <= blur else 0)
                 )
-                counts[p] += 1
-                count += 1
+            p = (base + r) * width + col0
+            for j in range(nx):
+                code = codes[j]
+                face_out[count] = f
+                pixel_out[count] = p + j
+                depth_out[count] = np.float32(depths[j])
+                dist_out[count] = dists[j]
+                share_out[count] = code & 127
+                kept = code >> 7
+                counts[p + j] += kept
+                count += kept
     return count
 
 
