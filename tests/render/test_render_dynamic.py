@@ -9,9 +9,10 @@ import torch.nn.functional as F
 from tests.render.per_pair_oracle import projected_boxes_of_kept_faces, render_dynamic_per_pair
 from tests.render.render_oracle import intrinsics, random_scene, render_pyrender
 from usl.geometry.cameras import scale_intrinsics
-from usl.render import SoftRasterSettings, compiled, render_dynamic, resample_masks_area
+from usl.render import SoftRasterSettings, render_dynamic, resample_masks_area
 from usl.render.dynamic import projected_boxes
 from usl.render.resample import _torch_resample_masks_area
+from usl.utils import compiled
 from usl.utils.op_count import count_ops
 
 SHARP = SoftRasterSettings(sigma=1e-10, blur_radius=1e-8, faces_per_pixel=None)

@@ -10,7 +10,8 @@ import trimesh
 
 from tests.render.render_oracle import intrinsics
 from tests.render.test_render_soft import pack
-from usl.render import SoftRasterSettings, compiled, rasterize_soft, rasterize_soft_dense, soft_cpu
+from usl.render import SoftRasterSettings, rasterize_soft, rasterize_soft_dense, soft_cpu
+from usl.utils import compiled
 from usl.render.screen import ndc_scale, project_faces
 from usl.render.soft import _select_pairs
 

@@ -9,7 +9,7 @@ table at the cell corners. Area outside the image counts as uncovered.
 All P windows are resampled at once: one integer summed-area table per mask (exact counts),
 sampled at every window's (R + 1)^2 cell corners with one gather, so the cost in ops does not
 grow with P and nothing is read back to the host. On the CPU (with numba) a compiled loop does the
-same arithmetic mask by mask (:mod:`usl.render.compiled`): no table of all masks, no gathered
+same arithmetic mask by mask (:mod:`usl.utils.compiled`): no table of all masks, no gathered
 corner tensors.
 """
 
@@ -21,7 +21,7 @@ from collections.abc import Sequence
 import numpy as np
 import torch
 
-from usl.render.compiled import compiled, serves
+from usl.utils.compiled import compiled, serves
 
 Tensor = torch.Tensor
 

@@ -4,7 +4,7 @@
 runs as torch ops: the no-grad selection of (face, pixel) pairs (a dozen elementwise ops on every
 candidate pair, then one big sort for the nearest K per pixel) and autograd through the signed
 distance of the kept pairs (dozens of small ops forward and backward). Here both are loops compiled
-by numba (:mod:`usl.render.compiled`):
+by numba (:mod:`usl.utils.compiled`):
 
 * :func:`select_pairs` walks each face's pixel box once, with the torch path's arithmetic in the
   faces' dtype, so it keeps exactly the same pairs in the same order (face after face, row-major in
@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from usl.render.compiled import compiled, serves
+from usl.utils.compiled import compiled, serves
 from usl.render.screen import ScreenFaces, blur_margin_pixels, face_pixel_boxes, ndc_scale
 
 Tensor = torch.Tensor
