@@ -1,4 +1,5 @@
-"""Batched, chunked nearest-neighbour search in torch (Chamfer losses and metrics).
+"""Batched, chunked nearest-neighbour search in torch (Chamfer losses and metrics), with a KD-tree
+and a compiled brute-force loop for CPU tensors.
 
 The search (which neighbour is nearest) runs without autograd over chunks of the query
 points, so memory stays at ``chunk x M`` distances per batch element instead of N x M;
@@ -145,41 +146,46 @@ def _loop_indices(x: Tensor, y: Tensor, x_valid: Tensor, y_valid: Tensor) -> tup
         x.shape[1],
         x_idx,
         y_idx,
-        np.empty((scratch_rows, x.shape[2]), dtype=np.float64),
+        np.empty((x.shape[2], scratch_rows), dtype=np.float64),
         np.empty(scratch_rows, dtype=np.int64),
+        np.empty(scratch_rows, dtype=np.float64),
     )
     return torch.from_numpy(x_idx), torch.from_numpy(y_idx)
 
 
 @compiled
-def _nearest_rows(points, queries, candidates, scratch, scratch_index, out):  # pragma: no cover
+def _nearest_rows(points, queries, candidates, scratch, scratch_index, dists, out):  # pragma: no cover
     """out[i]: the first nearest valid point (last column != 0) among rows ``candidates`` (a
     range) to row ``queries[i]``, as an offset into the range; 0 when none is valid. The valid
-    candidates are first copied to ``scratch`` in float64, so the search loop has no branch."""
+    candidates are first copied to ``scratch`` (D, C) in float64; per query, their distances
+    go to ``dists`` in a loop without branches (vectorized), then the first minimum is found."""
     dims = points.shape[1] - 1
     count = 0
     for j in candidates:
         if points[j, dims] != 0:
             for k in range(dims):
-                scratch[count, k] = points[j, k]
+                scratch[k, count] = points[j, k]
             scratch_index[count] = j - candidates.start
             count += 1
     for i, q in enumerate(queries):
+        for c in range(count):
+            dists[c] = 0.0
+        for k in range(dims):
+            coordinate = np.float64(points[q, k])
+            for c in range(count):
+                diff = coordinate - scratch[k, c]
+                dists[c] += diff * diff
         best, arg = np.inf, 0
         for c in range(count):
-            dist = 0.0
-            for k in range(dims):
-                diff = np.float64(points[q, k]) - scratch[c, k]
-                dist += diff * diff
-            if dist < best:
-                best, arg = dist, scratch_index[c]
+            if dists[c] < best:
+                best, arg = dists[c], scratch_index[c]
         out[i] = arg
 
 
 @compiled
-def _nearest_both_loop(table, n, x_idx, y_idx, scratch, scratch_index):  # pragma: no cover
+def _nearest_both_loop(table, n, x_idx, y_idx, scratch, scratch_index, dists):  # pragma: no cover
     """Rows [0, n) of each table[b] are x, the rest y: nearest y of each x, and the reverse."""
     total = table.shape[1]
     for b in range(table.shape[0]):
-        _nearest_rows(table[b], range(0, n), range(n, total), scratch, scratch_index, x_idx[b])
-        _nearest_rows(table[b], range(n, total), range(0, n), scratch, scratch_index, y_idx[b])
+        _nearest_rows(table[b], range(0, n), range(n, total), scratch, scratch_index, dists, x_idx[b])
+        _nearest_rows(table[b], range(n, total), range(0, n), scratch, scratch_index, dists, y_idx[b])
