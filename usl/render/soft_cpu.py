@@ -27,8 +27,8 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from usl.utils.compiled import compiled, serves
 from usl.render.screen import ScreenFaces, blur_margin_pixels, face_pixel_boxes, ndc_scale
+from usl.utils.compiled import compiled, serves
 
 Tensor = torch.Tensor
 _NUMPY_DTYPES = {torch.float32: np.float32, torch.float64: np.float64}
@@ -46,8 +46,9 @@ class Pairs:
     edge k at bit 2k, the share of the gradient of ``d`` that edge k's distance takes (0: none,
     1: all, 2: half, 3: a quarter, as nested ``torch.minimum`` splits exact ties), and bit 6 set
     when the pixel is inside (``d = -min``). ``faces``: the (F, 22) face table the pairs were
-    selected from (the 16 :class:`~usl.render.screen.Plane` rows, then the 6 depth rows); ``centres``:
-    pixel-centre coordinates 0.5, 1.5, ... in the faces' dtype."""
+    selected from (the 16 :class:`~usl.render.screen.Plane` fields, then the 6
+    :class:`~usl.render.screen.Depths` fields, as columns); ``centres``: pixel-centre coordinates
+    0.5, 1.5, ... in the faces' dtype."""
 
     face: np.ndarray
     pixel: np.ndarray
@@ -146,7 +147,7 @@ class LogTransparency(torch.autograd.Function):
 # literal would promote it) and scalars are rounded to that dtype as torch rounds a Python operand.
 # Face table columns: corners x0 y0 x1 y1 x2 y2 (0-5), edge vectors ex0 ey0 ex1 ey1 ex2 ey2 (6-11),
 # inverse squared edge lengths (12-14), 1 / twice the signed area (15), then w0 w1 w2 z0 z1 z2
-# (16-21). Edge k runs from corner k + 1; its start, vector and inverse length are in _EDGE_COLUMNS.
+# (16-21). Edge k runs from corner k + 1 (its columns: see _edge_backward).
 @compiled
 def _edge_sq_distance(px, py, ax, ay, ex, ey, il, zero, one):  # pragma: no cover
     """``usl.render.screen.signed_sq_distance`` for one edge, op for op: the squared distance, the
