@@ -10,7 +10,7 @@ by numba (:mod:`usl.utils.compiled`):
   faces' dtype, so it keeps exactly the same pairs in the same order (face after face, row-major in
   the box). For each it also keeps the signed distance ``d`` and which edges the gradient of the
   distance's minimum goes to. The nearest K of a pixel with more candidates are picked from a
-  bucket of that pixel's pairs, ties going to the earlier pair, as the torch path's stable sort does.
+  bucket of that pixel's depths, ties going to the earlier pair, as the torch path's stable sort does.
 * :class:`LogTransparency` sums ``log sigmoid(d / sigma)`` per pixel and has an analytic backward
   into the (16, F) face table that follows the torch path's autograd formulas, ties included.
   Per pair it stores a few bytes, not autograd's dozens of tensors, so no checkpointing is needed.
@@ -93,7 +93,8 @@ def select_pairs(
             k,
             np.empty(count, dtype=np.int32),
             np.empty(count, dtype=np.int32),
-            np.empty(count, dtype=np.bool_),
+            np.empty(len(counts), dtype=np.int32),
+            np.empty(len(counts), dtype=np.int32),
             np.empty(k, dtype=np.int32),
             np.empty(k, dtype=np.int32),
         )
@@ -247,25 +248,26 @@ def _select_loop(
 
 @compiled
 def _nearest_loop(
-    face, pixel, depth_bits, dist, share, counts, k, bucket_bits, bucket_pair, keep, top_bits, top_pair
+    face, pixel, depth_bits, dist, share, counts, k, buckets, slot_of, limit_bits, limit_slot, top_bits, top_slot
 ):  # pragma: no cover
     """Keeps, in place and in order, the pairs that rank among the k smallest ``depth_bits`` of
-    their pixel (ties going to the earlier pair); returns how many. Pairs of pixels with more than
-    k are bucketed by pixel in their order (a counting sort), and each bucket keeps a sorted list of
-    its k best. ``counts`` (pairs per pixel) is overwritten with bucket ends."""
+    their pixel (ties going to the earlier pair); returns how many.
+
+    The depths of pixels with more than k pairs are bucketed by pixel in pair order (a counting
+    sort; ``slot_of`` records each pair's slot), so a slot orders equal depths as pair order does.
+    A sorted list of each bucket's k best (``top_*``) gives the pixel's k-th (depth, slot), and a
+    pair is kept when its own does not exceed it. ``counts`` (pairs per pixel) is overwritten."""
     total = 0
-    for p in range(counts.shape[0]):  # counts[p] -> start of p's bucket (pixels with more than k)
+    for p in range(counts.shape[0]):  # counts[p] -> start of p's bucket, or -1 (k or fewer pairs)
         n = counts[p]
-        counts[p] = total
+        counts[p] = total if n > k else -1
         if n > k:
             total += n
-        else:
-            counts[p] = -1 - n  # uncrowded: keeps all its pairs, no bucket
     for i in range(pixel.shape[0]):
         slot = counts[pixel[i]]
-        keep[i] = slot < 0
+        slot_of[i] = slot
         if slot >= 0:  # the bucket's fill pointer advances to the bucket's end
-            bucket_bits[slot], bucket_pair[slot] = depth_bits[i], i
+            buckets[slot] = depth_bits[i]
             counts[pixel[i]] = slot + 1
     end = 0
     for p in range(counts.shape[0]):
@@ -273,25 +275,25 @@ def _nearest_loop(
             continue
         start, end = end, counts[p]
         size = 0
-        for j in range(start, end):
-            bits = bucket_bits[j]
+        for slot in range(start, end):
+            bits = buckets[slot]
             if size == k:
                 if bits >= top_bits[k - 1]:  # an equal depth loses to the earlier pair
                     continue
                 size -= 1
-            slot = size
-            while slot > 0 and top_bits[slot - 1] > bits:
-                top_bits[slot], top_pair[slot] = top_bits[slot - 1], top_pair[slot - 1]
-                slot -= 1
-            top_bits[slot], top_pair[slot] = bits, bucket_pair[j]
+            rank = size
+            while rank > 0 and top_bits[rank - 1] > bits:
+                top_bits[rank], top_slot[rank] = top_bits[rank - 1], top_slot[rank - 1]
+                rank -= 1
+            top_bits[rank], top_slot[rank] = bits, slot
             size += 1
-        for slot in range(k):
-            keep[top_pair[slot]] = True
+        limit_bits[p], limit_slot[p] = top_bits[k - 1], top_slot[k - 1]
     kept = 0
-    for i in range(pixel.shape[0]):
-        if keep[i]:
-            face[kept], pixel[kept], dist[kept], share[kept] = face[i], pixel[i], dist[i], share[i]
-            kept += 1
+    for i in range(pixel.shape[0]):  # written in place, the end advancing past kept pairs only
+        p, slot, bits = pixel[i], slot_of[i], depth_bits[i]
+        keep = slot < 0 or bits < limit_bits[p] or (bits == limit_bits[p] and slot <= limit_slot[p])
+        face[kept], pixel[kept], dist[kept], share[kept] = face[i], p, dist[i], share[i]
+        kept += keep
     return kept
 
 
