@@ -1,8 +1,10 @@
 """Surface sampling (trimesh proximity as oracle) and chunked nearest neighbours (scipy cKDTree)."""
 
+import importlib
 import math
 
 import numpy as np
+import pytest
 import torch
 import trimesh
 from scipy.spatial import cKDTree
@@ -11,6 +13,9 @@ from usl.geometry.icosphere import ico_sphere
 from usl.geometry.meshes import Meshes
 from usl.geometry.nearest import chamfer_directions, nearest_neighbors
 from usl.geometry.sampling import face_areas_packed, sample_points_from_meshes
+from usl.utils import compiled
+
+NEAREST = importlib.import_module("usl.geometry.nearest")
 
 
 def _distance_to_surface(mesh: trimesh.Trimesh, points: np.ndarray) -> np.ndarray:
@@ -118,3 +123,34 @@ def test_kdtree_backend_finds_the_same_neighbours_with_the_same_gradient():
     torch.testing.assert_close(results["torch"][0], results["kdtree"][0])
     assert torch.equal(results["torch"][1], results["kdtree"][1]) and valid.gather(1, results["kdtree"][1]).all()
     torch.testing.assert_close(results["torch"][2], results["kdtree"][2])
+
+
+@pytest.mark.skipif(compiled.numba is None, reason="numba is not installed")
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_loop_backend_equals_the_torch_backend_and_exact_nearest_points(dtype):
+    """Both directions against the torch backend (values and gradients) and a float64 argmin
+    (first index on exact ties): invalid points both sides, duplicated points, a batch element
+    without a valid candidate."""
+    generator = torch.Generator().manual_seed(5)
+    x = torch.rand(3, 70, 2, generator=generator, dtype=torch.float64)
+    y = torch.rand(3, 50, 2, generator=generator, dtype=torch.float64)
+    y[:, 25:] = y[:, :25]  # exact ties: the first of two equal points is the nearest
+    x, y = x.to(dtype), y.to(dtype)
+    x_valid = torch.rand(3, 70, generator=generator) > 0.2
+    y_valid = torch.rand(3, 50, generator=generator) > 0.3
+    y_valid[2] = False
+    results = {}
+    for backend in ("torch", "loop"):
+        a, b = x.clone().requires_grad_(True), y.clone().requires_grad_(True)
+        xy, yx = chamfer_directions(a, b, x_valid, y_valid, backend=backend)
+        grad_x, grad_y = torch.autograd.grad((xy * 2).sum() + yx.sum(), (a, b))
+        # the torch backend may pick either copy of a duplicated point: compare the copies' sum
+        results[backend] = xy.detach(), yx.detach(), grad_x, grad_y[:, :25] + grad_y[:, 25:]
+    for torch_result, loop_result in zip(results["torch"], results["loop"]):
+        torch.testing.assert_close(loop_result, torch_result)
+    exact = ((x[:, :, None].double() - y[:, None].double()) ** 2).sum(-1).masked_fill(~y_valid[:, None], np.inf)
+    loop_idx = NEAREST._loop_indices(x, y, x_valid, y_valid)[0]
+    assert torch.equal(loop_idx[:2], exact.argmin(2)[:2])
+    twin_valid = y_valid[:2].gather(1, loop_idx[:2] % 25 + 25)
+    assert ((loop_idx[:2] < 25) & twin_valid).any()  # ties were met, and went to the first point
+    assert (results["loop"][0][2] == 0).all() and (results["loop"][1][2] == 0).all()

@@ -11,6 +11,8 @@ from tests.render.render_oracle import intrinsics, random_scene, render_pyrender
 from usl.geometry.cameras import scale_intrinsics
 from usl.render import SoftRasterSettings, render_dynamic, resample_masks_area
 from usl.render.dynamic import projected_boxes
+from usl.render.resample import _torch_resample_masks_area
+from usl.utils import compiled
 from usl.utils.op_count import count_ops
 
 SHARP = SoftRasterSettings(sigma=1e-10, blur_radius=1e-8, faces_per_pixel=None)
@@ -59,6 +61,21 @@ def test_exact_area_resampling_matches_overlap_oracle_and_average_pooling():
     pooled = F.avg_pool2d(torch.as_tensor(masks[0, 4:36, 8:40], dtype=torch.float64)[None], 4)
     window = torch.tensor([[8.0, 4.0, 40.0, 36.0]])
     torch.testing.assert_close(resample_masks_area(torch.as_tensor(masks[:1]), window, 8), pooled)
+
+
+@pytest.mark.skipif(compiled.numba is None, reason="numba is not installed")
+def test_compiled_resampling_equals_the_torch_path_bit_for_bit():
+    """The CPU loop against the torch path (which CUDA runs): windows inside, past every image
+    edge, smaller than a pixel, and non-contiguous masks."""
+    rng = np.random.default_rng(5)
+    masks = torch.as_tensor(rng.random((40, 53, 37)) > 0.6).transpose(1, 2)
+    corner = torch.as_tensor(rng.uniform(-20, 50, (40, 2)))
+    sides = torch.as_tensor(rng.uniform(0.3, 60, (40, 2)))
+    windows = torch.cat([corner, corner + sides], dim=1)
+    for resolution in (1, 7, 16):
+        expected = _torch_resample_masks_area(masks, windows, resolution)
+        assert torch.equal(resample_masks_area(masks, windows, resolution), expected)
+    assert expected.amax() == 1.0 and (expected == 0).any() and ((expected > 0) & (expected < 1)).any()
 
 
 def test_batched_render_matches_the_per_pair_oracle_in_values_and_gradients():

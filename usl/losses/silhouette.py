@@ -114,8 +114,9 @@ def silhouette_chamfer_loss(
         true_valid = torch.ones(true_points.shape[:2], dtype=torch.bool, device=true_points.device)
     else:
         true_valid = lengths_to_mask(true_lengths, true_points.shape[1])
+    # a few hundred points a side: exact brute force as a compiled loop on the CPU
     pred_to_true, true_to_pred = chamfer_directions(
-        uv * scale, true_points.to(uv.dtype) * scale, pred_valid, true_valid, max_elements
+        uv * scale, true_points.to(uv.dtype) * scale, pred_valid, true_valid, max_elements, backend="loop"
     )
     pred_count = pred_valid.sum(dim=1).clamp(min=1)
     true_count = true_valid.sum(dim=1).clamp(min=1)

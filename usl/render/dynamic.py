@@ -102,10 +102,12 @@ def render_dynamic(
         windows = square_windows(boxes, image_sizes, padding, min_size)
     K_window = window_intrinsics(windows, resolution).to(K.dtype) @ K
     soft = rasterize_soft(verts, faces, face_window, K_window, resolution, resolution, settings)
-    target = resample_masks_area(masks, windows, resolution)
     valid = _cells_inside_image(windows, image_sizes, resolution)
-    if ignore_masks is not None:
-        hidden = resample_masks_area(stack_masks(ignore_masks).to(K.device), windows, resolution)
+    if ignore_masks is None:
+        target = resample_masks_area(masks, windows, resolution)
+    else:  # both stacks in one call (padded to one size, which changes no coverage)
+        both = stack_masks([*masks, *stack_masks(ignore_masks).to(K.device)])
+        target, hidden = resample_masks_area(both, windows.repeat(2, 1), resolution).split(num_pairs)
         valid = valid & (hidden <= 0.5)
     return DynamicRender(
         soft=soft,

@@ -8,14 +8,20 @@ table at the cell corners. Area outside the image counts as uncovered.
 
 All P windows are resampled at once: one integer summed-area table per mask (exact counts),
 sampled at every window's (R + 1)^2 cell corners with one gather, so the cost in ops does not
-grow with P and nothing is read back to the host.
+grow with P and nothing is read back to the host. On the CPU (with numba) a compiled loop does the
+same arithmetic mask by mask (:mod:`usl.utils.compiled`): no table of all masks, no gathered
+corner tensors.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 
+import numpy as np
 import torch
+
+from usl.utils.compiled import compiled, serves
 
 Tensor = torch.Tensor
 
@@ -42,8 +48,23 @@ def resample_masks_area(masks: Tensor, windows: Tensor, resolution: int) -> Tens
     ``windows`` are [x0, y0, x1, y1] in the masks' pixel frame with x1 > x0 and y1 > y0; they may
     extend past the image.
     """
-    num, height, width = masks.shape
     windows = windows.to(device=masks.device, dtype=torch.float64)
+    if serves(masks):
+        out = np.empty((masks.shape[0], resolution, resolution), dtype=np.float64)
+        height, width = masks.shape[1:]
+        _area_loop(
+            masks.numpy().astype(np.uint8, copy=False),
+            windows.numpy(),
+            np.empty((height + 1, width + 1), dtype=np.int32),
+            np.empty((resolution + 1, resolution + 1), dtype=np.float64),
+            out,
+        )
+        return torch.from_numpy(out)
+    return _torch_resample_masks_area(masks, windows, resolution)
+
+
+def _torch_resample_masks_area(masks: Tensor, windows: Tensor, resolution: int) -> Tensor:
+    num, height, width = masks.shape
     table = torch.zeros(num, height + 1, width + 1, dtype=torch.int32, device=masks.device)
     table[:, 1:, 1:] = masks.to(torch.int32).cumsum(1, dtype=torch.int32).cumsum(2, dtype=torch.int32)
     steps = torch.arange(resolution + 1, dtype=torch.float64, device=masks.device) / resolution
@@ -70,3 +91,40 @@ def _bilinear_on_grids(table: Tensor, ys: Tensor, xs: Tensor) -> Tensor:
     top = corners[0] * (1 - fx) + corners[1] * fx
     bottom = corners[2] * (1 - fx) + corners[3] * fx
     return top * (1 - fy) + bottom * fy
+
+
+@compiled
+def _area_loop(masks, windows, table, integral, out):  # pragma: no cover
+    """:func:`_torch_resample_masks_area` mask by mask, op for op in float64: the summed-area
+    ``table`` (H + 1, W + 1) and the ``integral`` (R + 1, R + 1) at the cell corners are scratch."""
+    height, width = masks.shape[1], masks.shape[2]
+    resolution = out.shape[1]
+    zero, one = np.float64(0.0), np.float64(1.0)
+    for p in range(masks.shape[0]):
+        for col in range(width + 1):
+            table[0, col] = 0
+        for row in range(height):
+            table[row + 1, 0] = 0
+            run = 0
+            for col in range(width):
+                run += masks[p, row, col]
+                table[row + 1, col + 1] = table[row, col + 1] + run
+        x0, y0, x1, y1 = windows[p, 0], windows[p, 1], windows[p, 2], windows[p, 3]
+        for i in range(resolution + 1):
+            y = y0 + (i / resolution) * (y1 - y0)
+            y = min(max(y, zero), np.float64(height))
+            iy = min(int(math.floor(y)), height - 1)
+            fy = y - iy
+            for j in range(resolution + 1):
+                x = x0 + (j / resolution) * (x1 - x0)
+                x = min(max(x, zero), np.float64(width))
+                ix = min(int(math.floor(x)), width - 1)
+                fx = x - ix
+                top = table[iy, ix] * (one - fx) + table[iy, ix + 1] * fx
+                bottom = table[iy + 1, ix] * (one - fx) + table[iy + 1, ix + 1] * fx
+                integral[i, j] = top * (one - fy) + bottom * fy
+        cell_area = (x1 - x0) * (y1 - y0) / (resolution * resolution)
+        for i in range(resolution):
+            for j in range(resolution):
+                cell = integral[i + 1, j + 1] - integral[i, j + 1] - integral[i + 1, j] + integral[i, j]
+                out[p, i, j] = min(max(cell / cell_area, zero), one)

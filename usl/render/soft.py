@@ -17,10 +17,12 @@ behind the near plane are culled, not clipped. As in PyTorch3D, the selection it
 (blur cut-off, nearest K) is not differentiated: the silhouette is piecewise smooth.
 
 :func:`rasterize_soft` is sparse: it selects (face, pixel) pairs inside each face's 2D
-box grown by the blur radius, chunk by chunk without gradients, then recomputes ``d``
-with gradients for the kept pairs only, in checkpointed chunks, so memory stays bounded
-by ``chunk_size``. :func:`rasterize_soft_dense` evaluates every (pixel, face) pair; it
-exists as the reference for tests and the benchmark.
+box grown by the blur radius, without gradients, then recomputes ``d`` with gradients for
+the kept pairs only. On CPU tensors (float32/float64) both steps are compiled loops
+(:mod:`usl.render.soft_cpu`: the same pairs, an analytic backward); elsewhere, and without
+numba, they are torch ops, chunk by chunk and checkpointed, so memory stays bounded by
+``chunk_size``. :func:`rasterize_soft_dense` evaluates every (pixel, face) pair; it exists
+as the reference for tests and the benchmark.
 """
 
 from __future__ import annotations
@@ -31,6 +33,7 @@ import torch
 import torch.nn.functional as F
 from torch.utils.checkpoint import checkpoint
 
+from usl.render import soft_cpu
 from usl.render.screen import (
     DEFAULT_CHUNK_SIZE,
     DEFAULT_NEAR,
@@ -60,7 +63,8 @@ class SoftRasterSettings:
     faces_per_pixel: keep the K nearest faces by depth per pixel; None keeps all faces
         within the blur radius.
     near: faces with a vertex whose homogeneous or planar depth is <= near are culled.
-    chunk_size: (face, pixel) pairs examined at once; bounds the working memory.
+    chunk_size: (face, pixel) pairs examined at once by the torch path; bounds its working
+        memory (the compiled CPU path holds a few bytes per candidate pair instead).
     """
 
     sigma: float = 1e-3
@@ -109,9 +113,28 @@ def rasterize_soft(
             f"rasterize_soft: {num_windows} windows of {height}x{width} exceed 2**31 pixels; split the batch"
         )
     screen = project_faces(verts, faces, face_window, K, settings.near)
-    face, pixel = _select_pairs(screen, face_window, height, width, settings)
     scale = ndc_scale(height, width) ** 2 / settings.sigma
-    log_transparency = torch.zeros(num_windows * height * width, dtype=verts.dtype, device=verts.device)
+    num_pixels = num_windows * height * width
+    if soft_cpu.available(screen.plane):
+        pairs = soft_cpu.select_pairs(screen, face_window, num_windows, height, width, settings)
+        log_transparency = soft_cpu.LogTransparency.apply(screen.plane, pairs, num_pixels, scale)
+    else:
+        log_transparency = _torch_log_transparency(screen, face_window, num_pixels, height, width, scale, settings)
+    return (-torch.expm1(log_transparency)).view(num_windows, height, width)
+
+
+def _torch_log_transparency(
+    screen: ScreenFaces,
+    face_window: Tensor,
+    num_pixels: int,
+    height: int,
+    width: int,
+    scale: float,
+    settings: SoftRasterSettings,
+) -> Tensor:
+    """(num_pixels,) sums of log(1 - p) per flat pixel, as torch ops (any device)."""
+    face, pixel = _select_pairs(screen, face_window, height, width, settings)
+    log_transparency = screen.plane.new_zeros(num_pixels)
     # With gradients and more than one chunk, each chunk is checkpointed: backward recomputes
     # it, so autograd memory stays bounded by chunk_size pairs instead of growing with the batch.
     checkpointed = torch.is_grad_enabled() and screen.plane.requires_grad and face.numel() > settings.chunk_size
@@ -131,7 +154,7 @@ def rasterize_soft(
             else _log_transparency_terms(*args)
         )
         log_transparency = log_transparency.index_add(0, args[2], terms)
-    return (-torch.expm1(log_transparency)).view(num_windows, height, width)
+    return log_transparency
 
 
 def _log_transparency_terms(
