@@ -78,10 +78,12 @@ class StandardROIHeads(nn.Module):
         if self.training:
             if targets is None:
                 raise ValueError("ROI heads need targets in training mode")
-            proposals = self.label_and_sample_proposals(proposals, targets)
+            proposals, num_foreground = self.label_and_sample_proposals(proposals, targets)
             losses = self.forward_box(features, proposals)
             if self.mask_on:
-                losses.update(self.forward_mask(features, proposals, targets))
+                # each image's foreground rows come first, so a slice selects them: no device read
+                foreground = [p[:n] for p, n in zip(proposals, num_foreground)]
+                losses.update(self.mask_losses(features, foreground, targets))
             return proposals, losses
         detections = self.forward_box(features, proposals)
         if self.mask_on:
@@ -89,10 +91,13 @@ class StandardROIHeads(nn.Module):
         return detections, {}
 
     @torch.no_grad()
-    def label_and_sample_proposals(self, proposals: list[Instances], targets: list[Instances]) -> list[Instances]:
+    def label_and_sample_proposals(
+        self, proposals: list[Instances], targets: list[Instances]
+    ) -> tuple[list[Instances], list[int]]:
         """Match proposals (plus the gt boxes themselves) to gt and sample a fg/bg mix per image.
 
-        Background proposals get class ``num_classes`` and ``gt_index`` -1.
+        Returns the samples, each image's foreground first, and how many foreground each has (host
+        ints). Background proposals get class ``num_classes`` and ``gt_index`` -1.
         """
         candidates = [
             torch.cat([p.proposal_boxes, t.gt_boxes.to(p.proposal_boxes.dtype)])
@@ -102,7 +107,7 @@ class StandardROIHeads(nn.Module):
         ]
         matched = [self.matcher(box_iou(t.gt_boxes, boxes)) for t, boxes in zip(targets, candidates)]
         counts = label_counts([labels for _, labels in matched])  # one host read for the batch's draws
-        sampled = []
+        sampled, num_foreground = [], []
         for proposal, target, boxes, (matches, labels), count in zip(proposals, targets, candidates, matched, counts):
             positive, negative = subsample_labels(
                 labels, self.cfg.batch_size_per_image, self.cfg.positive_fraction, count
@@ -125,7 +130,8 @@ class StandardROIHeads(nn.Module):
                     gt_index=torch.where(is_foreground, matched, -1),
                 )
             )
-        return sampled
+            num_foreground.append(len(positive))
+        return sampled, num_foreground
 
     def forward_box(self, features: Mapping[str, Tensor], proposals: list[Instances]):
         """Training: box losses; eval: detections after score threshold, per-class NMS and top-k."""
@@ -138,12 +144,8 @@ class StandardROIHeads(nn.Module):
             logits, deltas, proposals, cfg.score_thresh_test, cfg.nms_thresh_test, cfg.detections_per_image
         )
 
-    def forward_mask(
-        self, features: Mapping[str, Tensor], instances: list[Instances], targets: Optional[list[Instances]] = None
-    ):
-        """Training: the mask losses on foreground proposals; eval: adds ``pred_masks`` (bool, H x W)."""
-        if self.training:
-            return self.mask_losses(features, [p[p.gt_index >= 0] for p in instances], targets)
+    def forward_mask(self, features: Mapping[str, Tensor], instances: list[Instances]) -> list[Instances]:
+        """Adds ``pred_masks`` (bool, H x W) to the detections (in training :meth:`mask_losses` runs instead)."""
         probabilities = self.mask_probabilities(features, instances)
         for detections, probs in zip(instances, probabilities.split([len(d) for d in instances])):
             detections.pred_masks = paste_masks_in_image(
