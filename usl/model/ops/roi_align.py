@@ -113,24 +113,29 @@ def roi_align_levels(
     device = first.device
     level = level.to(device)
     batch_index = rois[:, 0].long()
-    heights = torch.tensor([m.shape[2] for m in inputs], device=device)[level]
-    widths = torch.tensor([m.shape[3] for m in inputs], device=device)[level]
+    # Both axes at once: row 0 the y axis, row 1 the x axis, (2, K) each.
+    shapes = torch.tensor([[m.shape[2] for m in inputs], [m.shape[3] for m in inputs]], device=device)
+    map_size = shapes[:, level]
     spatial_scale = torch.tensor(list(scales), dtype=compute_dtype, device=device)[level]
     offset = 0.5 if aligned else 0.0
-    x0, y0, x1, y1 = (rois[:, i] * spatial_scale - offset for i in range(1, 5))
-    roi_w, roi_h = x1 - x0, y1 - y0
+    corners = (rois[:, 1:] * spatial_scale[:, None] - offset).T  # (4, K): x0, y0, x1, y1
+    start = corners[[1, 0]]
+    roi_size = corners[[3, 2]] - start
     if not aligned:
-        roi_w, roi_h = roi_w.clamp(min=1.0), roi_h.clamp(min=1.0)
-    grid_h, grid_w = _grid(roi_h, out_h, sampling_ratio), _grid(roi_w, out_w, sampling_ratio)
+        roi_size = roi_size.clamp(min=1.0)
+    bins = torch.tensor([[out_h], [out_w]], device=device)
+    grid = _grid(roi_size, bins, sampling_ratio)
     # The only device-to-host transfer: the sizes every tensor shape below depends on.
-    sizes = torch.stack([roi_h, roi_w, grid_h.to(roi_h.dtype), grid_w.to(roi_h.dtype), heights, widths], dim=1)
+    sizes = torch.cat([roi_size, grid.to(roi_size.dtype), map_size.to(roi_size.dtype)])  # (6, K)
     bounds = torch.stack([batch_index.min(), batch_index.max()]).to(sizes.dtype)
-    host = torch.cat([bounds, sizes.flatten()]).cpu().numpy().astype(np.float64)
+    host = torch.cat([bounds, sizes.T.flatten()]).cpu().numpy().astype(np.float64)
     if host[0] < 0 or host[1] >= num_images:
         raise ValueError(f"RoI batch indices must lie in [0, {num_images}), got [{int(host[0])}, {int(host[1])}]")
     host_roi_h, host_roi_w, host_grid_h, host_grid_w, host_h, host_w = np.nan_to_num(host[2:].reshape(-1, 6)).T
-    rows = _axis_samples(y0, roi_h, out_h, heights, grid_h, max(int(host_grid_h.max()), 1))
-    cols = _axis_samples(x0, roi_w, out_w, widths, grid_w, max(int(host_grid_w.max()), 1))
+    max_grid = max(int(host_grid_h.max()), int(host_grid_w.max()), 1)
+    samples = _axis_samples(start, roi_size, bins, map_size, grid, max(out_h, out_w), max_grid)
+    rows, cols = samples.split(out_h, out_w)
+    heights, widths = map_size
     window_h, window_w = _window_bound(host_roi_h, host_h), _window_bound(host_roi_w, host_w)
     # where each (level, image) map starts in the channels-last concatenation of all levels
     pixels = torch.tensor([m.shape[2] * m.shape[3] for m in inputs], device=device)
@@ -181,9 +186,17 @@ class _AxisSamples:
     def take(self, chunk: Tensor) -> "_AxisSamples":
         return _AxisSamples(self.index[chunk], self.weight[chunk], self.start[chunk])
 
+    def split(self, rows: int, cols: int) -> tuple["_AxisSamples", "_AxisSamples"]:
+        """The y axis (first ``rows`` bins of row 0) and the x axis (first ``cols`` of row 1) of a
+        two-axis ``_axis_samples``."""
+        return tuple(
+            _AxisSamples(self.index[axis, :, :bins], self.weight[axis, :, :bins], self.start[axis])
+            for axis, bins in ((0, rows), (1, cols))
+        )
 
-def _grid(roi_size: Tensor, bins: int, sampling_ratio: int) -> Tensor:
-    """Samples per bin along one axis: fixed, or adaptive ``ceil(roi_size / bins)``."""
+
+def _grid(roi_size: Tensor, bins: Tensor, sampling_ratio: int) -> Tensor:
+    """Samples per bin along each axis: fixed, or adaptive ``ceil(roi_size / bins)``."""
     if sampling_ratio > 0:
         return torch.full_like(roi_size, sampling_ratio, dtype=torch.long)
     return torch.ceil(roi_size / bins).long().clamp(min=0)
@@ -199,21 +212,25 @@ def _window_bound(roi_size: np.ndarray, size: np.ndarray) -> np.ndarray:
 
 
 def _axis_samples(
-    start: Tensor, roi_size: Tensor, bins: int, sizes: Tensor, grid: Tensor, max_grid: int
+    start: Tensor, roi_size: Tensor, bins: Tensor, sizes: Tensor, grid: Tensor, max_bins: int, max_grid: int
 ) -> _AxisSamples:
-    """Sampling positions along one axis and their two bilinear taps (torchvision's rules);
-    ``sizes`` (K,) is the length of that axis in each RoI's map."""
-    size = sizes[:, None, None]
-    bin_size = roi_size / bins
-    grid_f = grid.clamp(min=1).to(start.dtype)[:, None, None]
-    bin_index = torch.arange(bins, device=start.device, dtype=start.dtype)[None, :, None]
+    """Sampling positions along the axes of every RoI and their two bilinear taps (torchvision's
+    rules): ``start``, ``roi_size``, ``sizes`` (the axis length of each RoI's map) and ``grid`` are
+    (A, K) for A axes, ``bins`` (A, 1) their bins, ``max_bins`` and ``max_grid`` host bounds of
+    ``bins`` and ``grid``; the result is (A, K, max_bins, 2 max_grid), padding with zero weight."""
+    size = sizes[..., None, None]
+    bin_size = (roi_size / bins)[..., None, None]
+    grid_f = grid.clamp(min=1).to(start.dtype)[..., None, None]
+    bin_index = torch.arange(max_bins, device=start.device)[:, None]
     sample_index = torch.arange(max_grid, device=start.device)
     coord = (
-        start[:, None, None]
-        + bin_index * bin_size[:, None, None]
-        + (sample_index.to(start.dtype)[None, None, :] + 0.5) * bin_size[:, None, None] / grid_f
+        start[..., None, None]
+        + bin_index.to(start.dtype) * bin_size
+        + (sample_index.to(start.dtype) + 0.5) * bin_size / grid_f
     )
-    valid = (sample_index[None, None, :] < grid[:, None, None]) & (coord >= -1.0) & (coord <= size)
+    valid = (
+        (bin_index < bins[..., None, None]) & (sample_index < grid[..., None, None]) & (coord >= -1.0) & (coord <= size)
+    )
     coord = coord.clamp(min=0.0)
     low = coord.floor().long()  # coord >= 0, so floor equals C's int() truncation
     at_edge = low >= size - 1
@@ -223,14 +240,14 @@ def _axis_samples(
     scale = valid.to(coord.dtype) / grid_f
 
     big = torch.iinfo(torch.long).max
-    window_start = torch.where(valid, low, big).flatten(1).amin(dim=1)
-    window_start = torch.where(valid.flatten(1).any(dim=1), window_start, torch.zeros_like(window_start))
+    window_start = torch.where(valid, low, big).flatten(-2).amin(dim=-1)
+    window_start = torch.where(valid.flatten(-2).any(dim=-1), window_start, torch.zeros_like(window_start))
     # Padding/invalid taps point at the window start with zero weight, so they cost nothing.
-    low = torch.where(valid, low, window_start[:, None, None])
-    high = torch.where(valid, high, window_start[:, None, None])
+    low = torch.where(valid, low, window_start[..., None, None])
+    high = torch.where(valid, high, window_start[..., None, None])
     return _AxisSamples(
-        index=torch.cat([low, high], dim=2),
-        weight=torch.cat([(1.0 - frac) * scale, frac * scale], dim=2),
+        index=torch.cat([low, high], dim=-1),
+        weight=torch.cat([(1.0 - frac) * scale, frac * scale], dim=-1),
         start=window_start,
     )
 
