@@ -14,6 +14,7 @@ from usl.model.detector import (
     Matcher,
     MultiScaleRoIAlign,
     assign_boxes_to_levels,
+    batch_mask_targets,
     label_counts,
     mask_targets,
     paste_masks_in_image,
@@ -125,6 +126,25 @@ def test_mask_targets_crop_the_matched_mask():
     assert targets[0].all()
     assert targets[1][:, :4].all() and not targets[1][:, 4:].any()  # the mask fills the box's left half
     assert not targets[2][:, :4].any() and targets[2][:, 4:].all()
+
+
+def test_batch_mask_targets_equal_one_call_per_image_with_one_read_per_mask_size():
+    g = torch.Generator().manual_seed(5)
+    sizes = [(40, 48), (40, 48), (32, 40), (40, 48), (40, 48)]
+    counts = [3, 0, 2, 4, 1]  # masks per image; the second image has none (and so no boxes)
+    masks = [torch.rand(k, h, w, generator=g) > 0.5 for k, (h, w) in zip(counts, sizes)]
+    boxes, index = [], []
+    for k, (h, w) in zip(counts, sizes):
+        n = 2 * k
+        xy = torch.rand(n, 2, generator=g) * torch.tensor([w, h]) * 0.7
+        boxes.append(torch.cat([xy, xy + 1 + torch.rand(n, 2, generator=g) * 20], dim=1))
+        index.append(torch.randint(0, max(k, 1), (n,), generator=g))
+    per_image = torch.cat([mask_targets(m, i, b, 14) for m, i, b in zip(masks, index, boxes) if len(b)])
+    with count_ops() as count:
+        batched = batch_mask_targets(masks, index, boxes, 14)
+    assert torch.equal(batched, per_image)
+    assert count.syncs == {"numpy": 2}  # one RoIAlign per mask size, not per image
+    assert batch_mask_targets(masks[1:2], index[1:2], boxes[1:2], 14).shape == (0, 14, 14)
 
 
 def test_instances_index_cat_and_validation():

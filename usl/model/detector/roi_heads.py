@@ -17,7 +17,13 @@ from ..backbone import Registry, ShapeSpec
 from ..ops import box_iou
 from .box_head import FastRCNNFCHead, FastRCNNOutputLayers
 from .config import ROIHeadsConfig
-from .mask_head import MaskRCNNConvUpsampleHead, mask_rcnn_loss, mask_targets, paste_masks_in_image, select_class_masks
+from .mask_head import (
+    MaskRCNNConvUpsampleHead,
+    batch_mask_targets,
+    mask_rcnn_loss,
+    paste_masks_in_image,
+    select_class_masks,
+)
 from .matcher import Matcher, label_counts, subsample_labels
 from .point_rend import PointRendMaskHead
 from .poolers import MultiScaleRoIAlign
@@ -159,13 +165,13 @@ class StandardROIHeads(nn.Module):
         """``loss_mask``: per-pixel cross-entropy of the 28 x 28 mask of each proposal's class."""
         mask_logits = self.mask_head(self.mask_pooler(features, [p.proposal_boxes for p in foreground]))
         resolution = mask_logits.shape[-1]
-        targets_per_box = [
-            mask_targets(t.gt_masks, p.gt_index, p.proposal_boxes, resolution)
-            for p, t in zip(foreground, targets)
-            if len(p)
-        ]
         classes = torch.cat([p.gt_classes for p in foreground])
-        gt = torch.cat(targets_per_box) if targets_per_box else mask_logits.new_zeros((0, resolution, resolution))
+        gt = batch_mask_targets(
+            [t.gt_masks for t in targets],
+            [p.gt_index for p in foreground],
+            [p.proposal_boxes for p in foreground],
+            resolution,
+        )
         return {"loss_mask": mask_rcnn_loss(mask_logits, classes, gt) * self.cfg.mask_head.loss_weight}
 
     def mask_probabilities(self, features: Mapping[str, Tensor], detections: list[Instances]) -> Tensor:
