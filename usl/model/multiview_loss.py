@@ -18,7 +18,6 @@ silhouettes with sigma ~ 1e-4 are not safe in half precision.
 
 from __future__ import annotations
 
-import itertools
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -29,11 +28,10 @@ from usl.data.samples import MultiViewSample
 from usl.geometry import Meshes, MeshTemplate, sample_points_from_meshes
 from usl.geometry.cameras import relative_transform, transform_points
 from usl.losses import (
+    edge_length_per_mesh,
     l2d_loss,
-    laplacian_smoothing_loss,
-    mesh_edge_loss,
+    laplacian_per_mesh,
     normal_consistency,
-    offset_l2_loss,
     sample_mask_points,
     silhouette_bce_loss,
     silhouette_chamfer_loss,
@@ -234,28 +232,36 @@ def shape_regularizers(
     """Edge, ½‖dV‖² (summed over stages, pre-tanh), Laplacian and normal-consistency terms, each a
     per-image mean over objects averaged over the batch. Terms not in ``need`` are None (not computed).
 
-    Regularizers act on the normalized-cube meshes, so their scale does not depend on layout.
+    Regularizers act on the normalized-cube meshes, so their scale does not depend on layout. All
+    objects are computed at once (they share the template), then averaged image by image.
     """
-    zero = verts_cube.sum() * 0.0
-    result: dict[str, Tensor | None] = {name: (zero.clone() if need.get(name) else None) for name in REGULARIZERS}
-    faces = template.faces
-    starts = [0, *itertools.accumulate(counts)]
-    batch = len(counts)
-    for index in range(batch):
-        rows = slice(starts[index], starts[index + 1])
-        if starts[index + 1] == starts[index]:
-            continue
+    per_object: dict[str, Tensor] = {}
+    if verts_cube.shape[0]:
+        verts = verts_cube.float()
         if need.get("edge") or need.get("laplacian"):
-            meshes = Meshes.from_shared_topology(verts_cube[rows].float(), faces, template.edges)
+            meshes = Meshes.from_shared_topology(verts, template.faces, template.edges)
         if need.get("edge"):
-            result["edge"] = result["edge"] + mesh_edge_loss(meshes) / batch
+            per_object["edge"] = edge_length_per_mesh(meshes)
         if need.get("laplacian"):
-            result["laplacian"] = result["laplacian"] + laplacian_smoothing_loss(meshes) / batch
+            per_object["laplacian"] = laplacian_per_mesh(meshes)
         if need.get("normal"):
-            result["normal"] = (
-                result["normal"]
-                + normal_consistency(verts_cube[rows].float(), faces, template.edge_faces).mean() / batch
-            )
-        if need.get("offset_l2"):
-            result["offset_l2"] = result["offset_l2"] + sum(offset_l2_loss(o[rows]) for o in offsets) / batch
+            per_object["normal"] = normal_consistency(verts, template.faces, template.edge_faces)
+        if need.get("offset_l2") and offsets:
+            per_object["offset_l2"] = 0.5 * torch.stack(offsets).pow(2).sum(dim=-1).mean(dim=-1).sum(dim=0)
+    zero = verts_cube.sum() * 0.0
+    batch = len(counts)
+    image = torch.repeat_interleave(
+        torch.arange(batch, device=verts_cube.device),
+        torch.tensor(counts, device=verts_cube.device),
+        output_size=verts_cube.shape[0],
+    )
+    objects = torch.tensor(counts, dtype=torch.float32, device=verts_cube.device).clamp(min=1)
+    result: dict[str, Tensor | None] = {}
+    for name in REGULARIZERS:
+        if not need.get(name):
+            result[name] = None
+        elif name in per_object:  # per-image means (an image without objects adds 0), over the batch
+            result[name] = (zero.new_zeros(batch).index_add(0, image, per_object[name]) / objects).sum() / batch
+        else:
+            result[name] = zero.clone()
     return result
