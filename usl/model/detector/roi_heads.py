@@ -14,7 +14,7 @@ import torch
 from torch import nn
 
 from ..backbone import Registry, ShapeSpec
-from ..ops import box_iou
+from ..ops import box_iou, stack_padded
 from .box_head import FastRCNNFCHead, FastRCNNOutputLayers
 from .config import ROIHeadsConfig
 from .mask_head import (
@@ -111,7 +111,11 @@ class StandardROIHeads(nn.Module):
             else p.proposal_boxes
             for p, t in zip(proposals, targets)
         ]
-        matched = [self.matcher(box_iou(t.gt_boxes, boxes)) for t, boxes in zip(targets, candidates)]
+        # every image matched at once: ground truth and candidates padded (padded gt rows match nothing)
+        gt_boxes, real = stack_padded([t.gt_boxes for t in targets])
+        quality = torch.where(real[..., None], box_iou(gt_boxes, stack_padded(candidates)[0]), -1.0)
+        all_matches, all_labels = self.matcher(quality)
+        matched = [(m[: len(boxes)], lab[: len(boxes)]) for m, lab, boxes in zip(all_matches, all_labels, candidates)]
         counts = label_counts([labels for _, labels in matched])  # one host read for the batch's draws
         sampled, num_foreground = [], []
         for proposal, target, boxes, (matches, labels), count in zip(proposals, targets, candidates, matched, counts):

@@ -9,7 +9,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from ..backbone import ShapeSpec
-from ..ops import AnchorGenerator, Box2BoxTransform, batched_nms, box_iou, nonempty_boxes
+from ..ops import AnchorGenerator, Box2BoxTransform, batched_nms, box_iou, nonempty_boxes, stack_padded
 from .config import RPNConfig
 from .matcher import IGNORE, Matcher, subsample_labels_dense
 from .structures import ImageList, Instances
@@ -81,17 +81,17 @@ class RPN(nn.Module):
 
     @torch.no_grad()
     def label_anchors(self, anchors: Tensor, targets: list[Instances]) -> tuple[Tensor, Tensor]:
-        """Sampled anchor labels (N, A) in {-1, 0, 1} and matched gt boxes (N, A, 4)."""
-        all_labels, all_boxes = [], []
-        for target in targets:
-            gt_boxes = target.gt_boxes
-            matches, labels = self.matcher(box_iou(gt_boxes, anchors))
-            all_labels.append(labels)
-            all_boxes.append(gt_boxes[matches] if len(gt_boxes) else torch.zeros_like(anchors))
-        labels = subsample_labels_dense(
-            torch.stack(all_labels), self.cfg.batch_size_per_image, self.cfg.positive_fraction
-        )
-        return labels, torch.stack(all_boxes)
+        """Sampled anchor labels (N, A) in {-1, 0, 1} and matched gt boxes (N, A, 4), every image's
+        ground truth matched at once (padded with rows that match nothing)."""
+        gt_boxes, real = stack_padded([target.gt_boxes for target in targets])  # (N, G, 4), (N, G)
+        quality = torch.where(real[..., None], box_iou(gt_boxes, anchors[None]), -1.0)
+        matches, labels = self.matcher(quality)
+        if gt_boxes.shape[1]:
+            matched_boxes = torch.gather(gt_boxes, 1, matches[..., None].expand(-1, -1, 4))
+        else:
+            matched_boxes = anchors.new_zeros(len(targets), *anchors.shape)
+        labels = subsample_labels_dense(labels, self.cfg.batch_size_per_image, self.cfg.positive_fraction)
+        return labels, matched_boxes
 
     def losses(self, anchors: Tensor, logits: Tensor, deltas: Tensor, targets: list[Instances]) -> dict[str, Tensor]:
         """Sums over all anchors weighted by their sampled labels (no boolean indexing, so no device read)."""
