@@ -117,18 +117,19 @@ class RPN(nn.Module):
         """Top-k per level, decode, clip, drop empty boxes, NMS per level, top-k per image."""
         pre_topk = self.cfg.pre_nms_topk_train if self.training else self.cfg.pre_nms_topk_test
         post_topk = self.cfg.post_nms_topk_train if self.training else self.cfg.post_nms_topk_test
-        boxes, scores, levels = [], [], []
+        top_deltas, top_anchors, scores, levels = [], [], [], []
         for level, (level_anchors, level_logits, level_deltas) in enumerate(zip(anchors, logits, deltas)):
             k = min(pre_topk, level_logits.shape[1])
             top_logits, top_index = level_logits.topk(k, dim=1)
             rows = torch.arange(level_logits.shape[0], device=top_index.device)[:, None]
-            decoded = self.box2box.apply_deltas(
-                level_deltas[rows, top_index].reshape(-1, 4), level_anchors[top_index].reshape(-1, 4)
-            )
-            boxes.append(decoded.view(-1, k, 4))
+            top_deltas.append(level_deltas[rows, top_index])
+            top_anchors.append(level_anchors[top_index])
             scores.append(top_logits)
             levels.append(torch.full((k,), level, device=top_index.device, dtype=torch.long))
-        boxes, scores, levels = torch.cat(boxes, 1), torch.cat(scores, 1), torch.cat(levels)
+        # every level decoded at once
+        top_anchors = torch.cat(top_anchors, 1)
+        boxes = self.box2box.apply_deltas(torch.cat(top_deltas, 1).reshape(-1, 4), top_anchors.reshape(-1, 4))
+        boxes, scores, levels = boxes.view(top_anchors.shape), torch.cat(scores, 1), torch.cat(levels)
 
         return self._nms_per_image(boxes, scores, levels, image_sizes, post_topk)
 
