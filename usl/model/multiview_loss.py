@@ -165,42 +165,55 @@ def _mean(values: Tensor, keep: Tensor) -> Tensor:
 def _gather_pairs(
     verts_cam: Tensor, faces: Tensor, samples: list[MultiViewSample], counts: list[int], cfg: LossConfig
 ) -> _Pairs:
-    """All pairs, one block per sample: its N objects in each of its M views (view-major)."""
+    """All pairs, one block per sample: its N objects in each of its M views (view-major). The
+    random draws go sample by sample (each keyed by its sample); the cameras and the transforms
+    into every view run once for the batch."""
     device, batch_size = verts_cam.device, len(samples)
-    parts: dict[str, list] = {name: [] for name in _Pairs.__dataclass_fields__}
-    for sample, verts in zip(samples, verts_cam.split(counts)):
-        if not len(verts):
+    parts: dict[str, list] = {name: [] for name in ("true_points", "true_lengths", "masks", "occluders")}
+    surfaces, poses, input_views, intrinsics, present, sizes = [], [], [], [], [], []
+    pair_rows: list[tuple[int, int, int, int]] = []  # per pair: object row, view row, sample, is input view
+    first_row = 0
+    for index, (sample, verts) in enumerate(zip(samples, verts_cam.split(counts))):
+        num_objects, num_views, start = len(verts), len(sample.views), first_row
+        first_row += num_objects
+        if not num_objects:
             continue
-        num_objects, num_views = len(verts), len(sample.views)
         # the sample's generator keys its draws: the same points whatever batch it lands in
         generator = torch.Generator(device=device).manual_seed(sample.seed)
-        surface = sample_points_from_meshes(Meshes.from_shared_topology(verts, faces), cfg.mesh_points, generator)
-        poses = torch.stack([view.cam_to_world for view in sample.views])
-        to_view = relative_transform(poses[:1], poses).float()[:, None]  # (M, 1, 4, 4)
+        surfaces.append(
+            sample_points_from_meshes(Meshes.from_shared_topology(verts, faces), cfg.mesh_points, generator)
+        )
         masks = _view_masks(sample)
         true_points, true_lengths = sample_mask_points(
             masks if isinstance(masks, Tensor) else stack_masks(masks), cfg.mask_points, generator=generator
         )
-        present = torch.cat([view.present for view in sample.views]).bool()
-        parts["verts"].append(transform_points(verts[None], to_view).flatten(0, 1))
-        parts["points"].append(transform_points(surface[None], to_view).flatten(0, 1))
         parts["true_points"].append(true_points)
         parts["true_lengths"].append(true_lengths)
         parts["masks"].append(masks)
         if cfg.ignore_occluders:
             parts["occluders"].append(_occluders(sample))
-        parts["K"].append(torch.stack([view.K.float() for view in sample.views]).repeat_interleave(num_objects, 0))
-        sizes = torch.tensor([view.size for view in sample.views], device=device)
-        parts["sizes"].append(sizes.repeat_interleave(num_objects, 0))
-        parts["present"].append(present)
-        parts["weight"].append(present.float() / (present.sum().clamp(min=1) * batch_size))
-        is_input = torch.zeros(num_views, num_objects, dtype=torch.bool, device=device)
-        is_input[0] = True
-        parts["is_input"].append(is_input.flatten())
+        pair_rows += [(start + o, len(poses) + j, index, j == 0) for j in range(num_views) for o in range(num_objects)]
+        input_views += [len(poses)] * num_views
+        poses += [view.cam_to_world for view in sample.views]
+        intrinsics += [view.K for view in sample.views]
+        present += [view.present for view in sample.views]
+        sizes += [view.size for view in sample.views]
+    pair_object, pair_view, pair_sample, is_input = torch.tensor(pair_rows, device=device).T
+    poses, input_views = torch.stack(poses), torch.tensor(input_views, device=device)
+    to_view = relative_transform(poses[input_views], poses).float()[pair_view]  # (P, 4, 4)
+    present = torch.cat(present).bool()
+    per_sample = torch.zeros(batch_size, dtype=torch.long, device=device).index_add(0, pair_sample, present.long())
     masks, occluders = parts.pop("masks"), parts.pop("occluders")
     return _Pairs(
+        verts=transform_points(verts_cam[pair_object], to_view),
+        points=transform_points(torch.cat(surfaces)[pair_object], to_view),
         masks=_join_masks(masks),
         occluders=_join_masks(occluders) if cfg.ignore_occluders else None,
+        K=torch.stack(intrinsics).float()[pair_view],
+        sizes=torch.tensor(sizes, device=device)[pair_view],
+        present=present,
+        weight=present.float() / (per_sample[pair_sample].clamp(min=1) * batch_size),
+        is_input=is_input.bool(),
         **{name: torch.cat(values) for name, values in parts.items()},
     )
 
