@@ -25,7 +25,7 @@ import torch
 
 from usl.model.config import LossConfig
 from usl.data.samples import MultiViewSample
-from usl.geometry import Meshes, MeshTemplate, sample_points_from_meshes
+from usl.geometry import Meshes, MeshTemplate, sample_points_in_groups
 from usl.geometry.cameras import relative_transform, transform_points
 from usl.losses import (
     edge_length_per_mesh,
@@ -170,7 +170,16 @@ def _gather_pairs(
     into every view run once for the batch."""
     device, batch_size = verts_cam.device, len(samples)
     parts: dict[str, list] = {name: [] for name in ("true_points", "true_lengths", "masks", "occluders")}
-    surfaces, poses, input_views, intrinsics, present, sizes = [], [], [], [], [], []
+    poses, input_views, intrinsics, present, sizes = [], [], [], [], []
+    # each sample's generator keys its draws: the same points whatever batch it lands in
+    generators = [torch.Generator(device=device).manual_seed(sample.seed) for sample in samples]
+    drawing = [index for index, count in enumerate(counts) if count]
+    surfaces = sample_points_in_groups(
+        Meshes.from_shared_topology(verts_cam, faces),
+        cfg.mesh_points,
+        [counts[index] for index in drawing],
+        [generators[index] for index in drawing],
+    )
     pair_rows: list[tuple[int, int, int, int]] = []  # per pair: object row, view row, sample, is input view
     first_row = 0
     for index, (sample, verts) in enumerate(zip(samples, verts_cam.split(counts))):
@@ -178,14 +187,9 @@ def _gather_pairs(
         first_row += num_objects
         if not num_objects:
             continue
-        # the sample's generator keys its draws: the same points whatever batch it lands in
-        generator = torch.Generator(device=device).manual_seed(sample.seed)
-        surfaces.append(
-            sample_points_from_meshes(Meshes.from_shared_topology(verts, faces), cfg.mesh_points, generator)
-        )
         masks = _view_masks(sample)
         true_points, true_lengths = sample_mask_points(
-            masks if isinstance(masks, Tensor) else stack_masks(masks), cfg.mask_points, generator=generator
+            masks if isinstance(masks, Tensor) else stack_masks(masks), cfg.mask_points, generator=generators[index]
         )
         parts["true_points"].append(true_points)
         parts["true_lengths"].append(true_lengths)
@@ -206,7 +210,7 @@ def _gather_pairs(
     masks, occluders = parts.pop("masks"), parts.pop("occluders")
     return _Pairs(
         verts=transform_points(verts_cam[pair_object], to_view),
-        points=transform_points(torch.cat(surfaces)[pair_object], to_view),
+        points=transform_points(surfaces[pair_object], to_view),
         masks=_join_masks(masks),
         occluders=_join_masks(occluders) if cfg.ignore_occluders else None,
         K=torch.stack(intrinsics).float()[pair_view],
