@@ -130,7 +130,7 @@ def multiview_silhouette_loss(
     is_input = pairs.is_input
     others = present & ~is_input
     other_views = (
-        {"iou_pass_views": _mean(xent.gate, others), "iou_views": _mean(xent.iou, others)}
+        {"iou_pass_views": (xent.gate, others), "iou_views": (xent.iou, others)}
         if any(len(sample.views) > 1 for sample in samples)
         else {}
     )
@@ -142,24 +142,28 @@ def multiview_silhouette_loss(
     shape_terms = xent if soft_iou is None else xent._replace(loss=xent.loss + cfg.weights.soft_iou * soft_iou)
     l3d = (l2d_loss(dist_factor * dist, shape_terms) * pairs.weight).sum()
     dist_part = (dist_factor * dist * pairs.weight).sum()  # the gated l_xent part is the rest of l_2D
-    stats = {
-        **({"l_dist": _mean(dist.detach(), present)} if dist_factor else {}),
-        "l_xent": _mean(xent.loss.detach(), present),
-        "l_xent_reached": _mean(xent.loss_reached, present),
-        **({"l_soft_iou": _mean(soft_iou.detach(), present)} if soft_iou is not None else {}),
-        "unreached": _mean(xent.unreached, present),
-        "xent_gate": _mean(xent.gate, present),
-        "iou_input": _mean(xent.iou, present & is_input),
-        **other_views,
-        "dist_factor": l3d.new_tensor(dist_factor),
-    }
+    stats = _means(
+        {
+            **({"l_dist": (dist.detach(), present)} if dist_factor else {}),
+            "l_xent": (xent.loss.detach(), present),
+            "l_xent_reached": (xent.loss_reached, present),
+            **({"l_soft_iou": (soft_iou.detach(), present)} if soft_iou is not None else {}),
+            "unreached": (xent.unreached, present),
+            "xent_gate": (xent.gate, present),
+            "iou_input": (xent.iou, present & is_input),
+            **other_views,
+        }
+    )
+    stats["dist_factor"] = l3d.new_tensor(dist_factor)
     return SilhouetteLoss(l3d, dist_part, l3d - dist_part, stats)
 
 
-def _mean(values: Tensor, keep: Tensor) -> Tensor:
-    """Mean of ``values`` over the pairs ``keep`` marks (0 if none), without reading the device."""
-    keep = keep.to(torch.float32)
-    return (values.to(torch.float32) * keep).sum() / keep.sum().clamp(min=1.0)
+def _means(terms: dict[str, tuple[Tensor, Tensor]]) -> dict[str, Tensor]:
+    """Each ``name: (values, keep)``'s mean of ``values`` over the pairs ``keep`` marks (0 if none),
+    all in one stacked reduction, without reading the device."""
+    values = torch.stack([value.to(torch.float32) for value, _ in terms.values()])
+    keep = torch.stack([mask.to(torch.float32) for _, mask in terms.values()])
+    return dict(zip(terms, ((values * keep).sum(dim=1) / keep.sum(dim=1).clamp(min=1.0)).unbind()))
 
 
 def _gather_pairs(
