@@ -134,19 +134,29 @@ def roi_align_levels(
     host_roi_h, host_roi_w, host_grid_h, host_grid_w, host_h, host_w = np.nan_to_num(host[2:].reshape(-1, 6)).T
     max_grid = max(int(host_grid_h.max()), int(host_grid_w.max()), 1)
     samples = _axis_samples(start, roi_size, bins, map_size, grid, max(out_h, out_w), max_grid)
-    rows, cols = samples.split(out_h, out_w)
-    heights, widths = map_size
     window_h, window_w = _window_bound(host_roi_h, host_h), _window_bound(host_roi_w, host_w)
+    plan = _plan_chunks(window_h, window_w, channels, max_chunk_elements)
+    # Every RoI's axis matrices and window rows/columns, built once up to the largest chunk window;
+    # each chunk then takes its RoIs' leading window_h x window_w part.
+    window = int(max(max(h, w) for _, h, w in plan))
+    matrices = _axis_matrices(samples, window)  # (2, K, max bins, window)
+    # Rows/columns past the map's edge only occur where the matrices are zero; clamp them in.
+    ids = torch.minimum(samples.start[..., None] + torch.arange(window, device=device), map_size[..., None] - 1)
     # where each (level, image) map starts in the channels-last concatenation of all levels
     pixels = torch.tensor([m.shape[2] * m.shape[3] for m in inputs], device=device)
     level_start = torch.cumsum(pixels * num_images, 0) - pixels * num_images
     map_start = level_start[level] + batch_index * pixels[level]
-    plan = _plan_chunks(window_h, window_w, channels, max_chunk_elements)
+    window_rows = map_start[:, None] + ids[0] * map_size[1, :, None]  # (K, window) first pixel of each row
+    row_matrices, col_matrices, col_ids = matrices[0, :, :out_h], matrices[1, :, :out_w], ids[1]
     order = torch.from_numpy(np.concatenate([index for index, _, _ in plan])).to(device)  # one upload
     chunks, begin = [], 0
     for index, h, w in plan:
-        chunk = order[begin : begin + len(index)]
-        chunks.append(_Chunk.build(chunk, map_start, rows, cols, heights, widths, int(h), int(w)))
+        rois_of_chunk = order[begin : begin + len(index)]
+        h, w = int(h), int(w)
+        pixel = window_rows[rois_of_chunk, :h, None] + col_ids[rois_of_chunk, None, :w]
+        chunks.append(
+            _Chunk(rois_of_chunk, pixel, row_matrices[rois_of_chunk, :, :h], col_matrices[rois_of_chunk, :, :w])
+        )
         begin += len(index)
     # In compute_dtype under autocast too (as torchvision's autocast rule does): autocast would run
     # the pooling matmuls in bf16/fp16 and write them into the float32 output.
@@ -177,22 +187,11 @@ class RoIAlign(nn.Module):
 
 @dataclass
 class _AxisSamples:
-    """Bilinear taps of one axis for every RoI: ``index``/``weight`` are (K, bins, taps)."""
+    """Bilinear taps of A axes for every RoI: ``index``/``weight`` are (A, K, bins, taps)."""
 
     index: Tensor  # absolute feature row (or column) of each tap
     weight: Tensor  # bilinear weight / grid count; zero for invalid or padding taps
-    start: Tensor  # (K,) first row of the window the RoI touches
-
-    def take(self, chunk: Tensor) -> "_AxisSamples":
-        return _AxisSamples(self.index[chunk], self.weight[chunk], self.start[chunk])
-
-    def split(self, rows: int, cols: int) -> tuple["_AxisSamples", "_AxisSamples"]:
-        """The y axis (first ``rows`` bins of row 0) and the x axis (first ``cols`` of row 1) of a
-        two-axis ``_axis_samples``."""
-        return tuple(
-            _AxisSamples(self.index[axis, :, :bins], self.weight[axis, :, :bins], self.start[axis])
-            for axis, bins in ((0, rows), (1, cols))
-        )
+    start: Tensor  # (A, K) first row of the window the RoI touches
 
 
 def _grid(roi_size: Tensor, bins: Tensor, sampling_ratio: int) -> Tensor:
@@ -278,11 +277,11 @@ def _plan_chunks(
     return chunks
 
 
-def _axis_matrix(axis: _AxisSamples, window: int) -> Tensor:
-    """Dense (k, bins, window) interpolation matrix relative to each RoI's window start."""
-    local = axis.index - axis.start[:, None, None]
-    matrix = axis.weight.new_zeros(axis.index.shape[0], axis.index.shape[1], window)
-    return matrix.scatter_add_(2, local, axis.weight)
+def _axis_matrices(axes: _AxisSamples, window: int) -> Tensor:
+    """Dense (A, K, bins, window) interpolation matrices relative to each RoI's window start."""
+    local = axes.index - axes.start[..., None, None]
+    matrix = axes.weight.new_zeros(*axes.index.shape[:-1], window)
+    return matrix.scatter_add_(-1, local, axes.weight)
 
 
 @dataclass
@@ -293,30 +292,6 @@ class _Chunk:
     pixel: Tensor  # (k, window_h, window_w) row of each window pixel in the channels-last levels
     row_matrix: Tensor  # (k, out_h, window_h)
     col_matrix: Tensor  # (k, out_w, window_w)
-
-    @classmethod
-    def build(
-        cls,
-        rois: Tensor,
-        map_start: Tensor,
-        rows: _AxisSamples,
-        cols: _AxisSamples,
-        heights: Tensor,
-        widths: Tensor,
-        window_h: int,
-        window_w: int,
-    ):
-        """``map_start`` (K,): first row of each RoI's (level, image) map; ``heights``/``widths`` (K,)
-        that map's size; ``window_h``/``window_w``: bounds of the chunk's windows (host ints,
-        see ``_window_bound``)."""
-        rows, cols = rows.take(rois), cols.take(rois)
-        device = rois.device
-        height, width = heights[rois, None], widths[rois, None]
-        # Rows/columns past the map's edge only occur where the matrices are zero; clamp them in.
-        row_ids = torch.minimum(rows.start[:, None] + torch.arange(window_h, device=device), height - 1)
-        col_ids = torch.minimum(cols.start[:, None] + torch.arange(window_w, device=device), width - 1)
-        pixel = map_start[rois, None, None] + row_ids[:, :, None] * width[:, :, None] + col_ids[:, None, :]
-        return cls(rois, pixel, _axis_matrix(rows, window_h), _axis_matrix(cols, window_w))
 
 
 def _channels_last(inputs: Sequence[Tensor]) -> Tensor:
