@@ -35,12 +35,11 @@ BoxesArg = Union[Tensor, Sequence[Tensor]]
 
 # Upper bound on the gathered feature elements held at once (64 MiB in float32).
 DEFAULT_CHUNK_ELEMENTS = 1 << 24
-# RoIs whose window sides agree within this factor are pooled together (padded to the largest).
+# RoIs whose window sides agree within this factor are pooled together (padded to the largest)...
 _BUCKET_GROWTH = 1.5
-# ...unless padding every window to the largest costs at most this factor more gathered pixels than
-# the windows hold, or fewer than _SMALL_CHUNK pixels: then one chunk (fewer ops) is cheaper.
-_PAD_WASTE = 3.0
-_SMALL_CHUNK = 1 << 14
+# ...and such groups merged while padding them to a common window gathers fewer elements than this:
+# a chunk costs a few dozen ops (forward and backward) whatever its size.
+_CHUNK_COST = 1 << 20
 
 
 def convert_boxes_to_rois(boxes: BoxesArg, like: Tensor) -> Tensor:
@@ -254,27 +253,57 @@ def _axis_samples(
 def _plan_chunks(
     heights: np.ndarray, widths: np.ndarray, channels: int, max_elements: int
 ) -> list[tuple[np.ndarray, int, int]]:
-    """Group RoIs whose windows have similar height and width (geometric buckets), then
-    split each group into chunks whose padded gather fits ``max_elements``.
+    """Chunks of RoIs, each padded to its largest window (rows of ``(rois, height, width)``).
 
-    Bucketing each axis separately bounds the padding waste (tall and wide windows are
-    never padded to each other's size) with a few dozen chunks in practice.
+    RoIs whose windows have similar height and width form groups (geometric buckets per axis, so
+    tall and wide windows are not padded to each other's size); consecutive groups, by window
+    area, are then merged where the padding gathers fewer elements than another chunk costs
+    (``_CHUNK_COST``), the cheapest such merge found by a dynamic programme over the groups; a
+    chunk whose padded gather passes ``max_elements`` is split.
     """
-    padded = len(heights) * heights.max() * widths.max()
-    if channels * padded <= max_elements and padded <= max(_PAD_WASTE * (heights * widths).sum(), _SMALL_CHUNK):
-        return [(np.arange(len(heights)), heights.max(), widths.max())]  # one chunk: padding costs little
     step = np.log(_BUCKET_GROWTH)
     buckets = np.ceil(np.log(heights) / step) * 4096 + np.ceil(np.log(widths) / step)
-    order = np.argsort(buckets, kind="stable")
-    _, starts = np.unique(buckets[order], return_index=True)
+    _, group_of = np.unique(buckets, return_inverse=True)
+    group_h, group_w = np.zeros(group_of.max() + 1), np.zeros(group_of.max() + 1)
+    np.maximum.at(group_h, group_of, heights)
+    np.maximum.at(group_w, group_of, widths)
+    by_area = np.argsort(group_h * group_w, kind="stable")
+    sizes = np.bincount(group_of)[by_area]
+    group_h, group_w = group_h[by_area], group_w[by_area]
+    # best[j]: the cheapest plan of the first j groups; a plan's last chunk holds groups cut[j]..j-1
+    best, cut = np.zeros(len(sizes) + 1), np.zeros(len(sizes) + 1, dtype=int)
+    for end in range(1, len(sizes) + 1):
+        first = np.arange(end)  # the last chunk's first group
+        high = np.maximum.accumulate(group_h[end - 1 :: -1])[::-1]
+        wide = np.maximum.accumulate(group_w[end - 1 :: -1])[::-1]
+        count = np.cumsum(sizes[end - 1 :: -1])[::-1]
+        cost = best[first] + _chunk_cost(count, channels * high * wide, max_elements)
+        cut[end] = int(np.argmin(cost))
+        best[end] = cost[cut[end]]
+    rank = np.empty_like(by_area)
+    rank[by_area] = np.arange(len(by_area))
+    order = np.argsort(rank[group_of], kind="stable")  # RoIs group by group, in area order
+    bounds = np.concatenate([[0], np.cumsum(sizes)])
+    segments, end = [], len(sizes)
+    while end:
+        segments.append((cut[end], end))
+        end = cut[end]
     chunks = []
-    for group in np.split(order, starts[1:]):
-        padded_cost = channels * int(heights[group].max()) * int(widths[group].max())
-        size = max(1, max_elements // max(padded_cost, 1))
+    for first, end in reversed(segments):
+        rois = order[bounds[first] : bounds[end]]
+        per_roi = channels * int(heights[rois].max()) * int(widths[rois].max())
+        size = max(1, max_elements // max(per_roi, 1))
         chunks += [
-            (part, heights[part].max(), widths[part].max()) for part in np.split(group, range(size, len(group), size))
+            (part, heights[part].max(), widths[part].max()) for part in np.split(rois, range(size, len(rois), size))
         ]
     return chunks
+
+
+def _chunk_cost(count: np.ndarray, per_roi: np.ndarray, max_elements: int) -> np.ndarray:
+    """Gathered elements plus ``_CHUNK_COST`` a chunk of ``count`` RoIs of ``per_roi`` padded
+    elements each, split to fit ``max_elements``."""
+    per_chunk = np.maximum(1, max_elements // np.maximum(per_roi, 1))
+    return count * per_roi + np.ceil(count / per_chunk) * _CHUNK_COST
 
 
 def _axis_matrices(axes: _AxisSamples, window: int) -> Tensor:
