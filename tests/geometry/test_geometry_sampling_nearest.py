@@ -12,7 +12,7 @@ from scipy.spatial import cKDTree
 from usl.geometry.icosphere import ico_sphere
 from usl.geometry.meshes import Meshes
 from usl.geometry.nearest import chamfer_directions, nearest_neighbors
-from usl.geometry.sampling import face_areas_packed, sample_points_from_meshes
+from usl.geometry.sampling import face_areas_packed, sample_points_from_meshes, sample_points_in_groups
 from usl.utils import compiled
 
 NEAREST = importlib.import_module("usl.geometry.nearest")
@@ -154,3 +154,22 @@ def test_loop_backend_equals_the_torch_backend_and_exact_nearest_points(dtype):
     twin_valid = y_valid[:2].gather(1, loop_idx[:2] % 25 + 25)
     assert ((loop_idx[:2] < 25) & twin_valid).any()  # ties were met, and went to the first point
     assert (results["loop"][0][2] == 0).all() and (results["loop"][1][2] == 0).all()
+
+
+def test_sampling_in_groups_equals_one_call_per_group_with_its_generator():
+    verts, faces = ico_sphere(1)
+    g = torch.Generator().manual_seed(0)
+    batch = verts * (1 + torch.rand(6, 1, 3, generator=g)) + torch.randn(6, 1, 3, generator=g)
+    batch[4, :, 2] = 0.0  # a flat mesh among them
+    sizes, seeds = [2, 3, 1], [11, 12, 13]
+    grouped = sample_points_in_groups(
+        Meshes.from_shared_topology(batch, faces), 50, sizes, [torch.Generator().manual_seed(s) for s in seeds], True
+    )
+    per_group = [
+        sample_points_from_meshes(Meshes.from_shared_topology(part, faces), 50, torch.Generator().manual_seed(s), True)
+        for part, s in zip(batch.split(sizes), seeds)
+    ]
+    for got, expected in zip(grouped, zip(*per_group)):
+        assert torch.equal(got, torch.cat(expected))
+    with pytest.raises(ValueError, match="groups"):
+        sample_points_in_groups(Meshes.from_shared_topology(batch, faces), 5, [2, 3], [None, None])

@@ -146,3 +146,50 @@ def test_the_model_averages_each_regularizer_per_image_then_over_the_batch_and_s
     ]
     assert out["laplacian"].item() == pytest.approx((lap[0] + lap[1]).item() / 3)
     assert out["offset_l2"] is None
+
+
+def shape_regularizers_per_image(verts_cube, offsets, template, counts, need):
+    """The former ``shape_regularizers``: one Meshes and one term per image, summed image by image."""
+    zero = verts_cube.sum() * 0.0
+    result = {name: (zero.clone() if need.get(name) else None) for name in ("edge", "offset_l2", "laplacian", "normal")}
+    starts = [0, *np.cumsum(counts).tolist()]
+    batch = len(counts)
+    for index in range(batch):
+        rows = slice(starts[index], starts[index + 1])
+        if starts[index + 1] == starts[index]:
+            continue
+        meshes = Meshes.from_shared_topology(verts_cube[rows].float(), template.faces, template.edges)
+        if need.get("edge"):
+            result["edge"] = result["edge"] + mesh_edge_loss(meshes) / batch
+        if need.get("laplacian"):
+            result["laplacian"] = result["laplacian"] + laplacian_smoothing_loss(meshes) / batch
+        if need.get("normal"):
+            per_mesh = normal_consistency(verts_cube[rows].float(), template.faces, template.edge_faces)
+            result["normal"] = result["normal"] + per_mesh.mean() / batch
+        if need.get("offset_l2"):
+            result["offset_l2"] = result["offset_l2"] + sum(offset_l2_loss(o[rows]) for o in offsets) / batch
+    return result
+
+
+@pytest.mark.parametrize("counts", [[2, 0, 3, 1], [0, 0], [4]])
+def test_batched_regularizers_equal_the_per_image_loop_in_values_and_gradients(counts):
+    from usl.model.multiview_loss import shape_regularizers
+
+    v, faces = ico_sphere(1)
+    template = MeshTemplate.build(faces, len(v))
+    g = torch.Generator().manual_seed(sum(counts))
+    n = sum(counts)
+    verts = v * torch.tensor([1.0, 0.5, 2.0]) + 0.05 * torch.randn(n, len(v), 3, generator=g)
+    offsets = [torch.randn(n, len(v), 3, generator=g) for _ in range(2)]
+    need = dict.fromkeys(("edge", "offset_l2", "laplacian", "normal"), True)
+    results = []
+    for regularizers in (shape_regularizers, shape_regularizers_per_image):
+        leaves = [t.clone().requires_grad_(True) for t in (verts, *offsets)]
+        out = regularizers(leaves[0], leaves[1:], template, counts, need)
+        sum(out.values()).backward()
+        results.append((out, [leaf.grad for leaf in leaves]))
+    (new, new_grads), (old, old_grads) = results
+    for name in need:
+        torch.testing.assert_close(new[name], old[name], rtol=1e-6, atol=1e-7)
+    for a, b in zip(new_grads, old_grads):
+        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-7)

@@ -116,3 +116,23 @@ def test_fpn_levels_shapes_and_strides():
         assert feature.shape == (2, shapes[name].channels, -(-128 // stride), -(-96 // stride))
     assert [s.stride for s in shapes.values()] == [4, 8, 16, 32, 64] and shapes["p2"].channels == 32
     assert backbone.size_divisibility == 32
+
+
+def test_frozen_batch_norm_keeps_its_affine_map_until_a_buffer_changes():
+    g = torch.Generator().manual_seed(0)
+    bn = torch.nn.BatchNorm2d(4).eval()
+    for name in ("weight", "bias", "running_mean"):
+        getattr(bn, name).data = torch.randn(4, generator=g)
+    bn.running_var.data = torch.rand(4, generator=g) + 0.5
+    frozen = FrozenBatchNorm2d.from_batch_norm(bn)
+    x = torch.randn(2, 4, 3, 3, generator=g, requires_grad=True)
+    with torch.inference_mode():  # e.g. an evaluation between training steps
+        frozen(x.detach())
+    out = frozen(x)
+    torch.testing.assert_close(out, bn(x))
+    out.sum().backward()  # the map cached in inference mode is not the one training uses
+    assert x.grad is not None
+    frozen.load_state_dict({**frozen.state_dict(), "running_var": torch.full((4,), 4.0)})
+    bn.running_var.data.fill_(4.0)
+    torch.testing.assert_close(frozen(x), bn(x))
+    torch.testing.assert_close(frozen.double()(x.double()), bn.double()(x.double()))

@@ -4,6 +4,7 @@ import pytest
 import torch
 
 from tests.model.detection_oracles import iou_single
+from usl.utils.op_count import count_ops
 from usl.model.ops import AnchorGenerator, Box2BoxTransform, box_area, box_iou, clip_boxes, nonempty_boxes
 
 
@@ -67,6 +68,19 @@ def test_anchor_counts_positions_and_shapes_per_level():
         ratios = torch.tensor([0.5, 1.0, 2.0] * (len(anchors) // 3))
         torch.testing.assert_close(wh[:, 0] * wh[:, 1], areas)
         torch.testing.assert_close(wh[:, 1] / wh[:, 0], ratios)
+
+
+def test_anchor_grids_are_built_once_per_feature_size():
+    generator = AnchorGenerator(sizes=((8,), (16,)), aspect_ratios=(1.0,), strides=(4, 8))
+    first = generator([(5, 7), (3, 4)])
+    with count_ops() as count:
+        again = generator([(5, 7), (3, 4)])
+    assert count.ops == 0 and all(torch.equal(a, b) for a, b in zip(first, again))
+    other = generator([(6, 7), (3, 4)])
+    assert other[0].shape == (6 * 7, 4) and torch.equal(other[0][: 5 * 7], first[0])
+    for height in range(20):  # a bounded cache: many sizes (evaluation) do not grow it without end
+        generator([(height + 1, 2), (1, 1)])
+    assert len(generator._grids) <= 8
 
 
 def test_anchor_generator_rejects_mismatched_levels():

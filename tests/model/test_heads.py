@@ -8,12 +8,14 @@ import torch.nn.functional as F
 
 from tests.model.detection_oracles import roi_align_loop, subsample_labels_read_per_image
 from usl.utils.op_count import count_ops
+from usl.model.ops import box_iou, stack_padded
 from usl.model.detector import (
     ImageList,
     Instances,
     Matcher,
     MultiScaleRoIAlign,
     assign_boxes_to_levels,
+    batch_mask_targets,
     label_counts,
     mask_targets,
     paste_masks_in_image,
@@ -60,6 +62,29 @@ def test_matcher_bands_and_low_quality_matches():
     assert labels.tolist() == [1, 1, 0, 0]  # gt 1's best prediction (0.65) is promoted
     matches, labels = Matcher([0.5], [0, 1])(torch.zeros(0, 3))
     assert labels.tolist() == [0, 0, 0]
+
+
+@pytest.mark.parametrize("low_quality", [False, True])
+def test_matching_a_padded_batch_of_images_equals_matching_image_by_image(low_quality):
+    """What the RPN and the RoI heads now do: every image's ground truth padded, rows that match nothing."""
+    g = torch.Generator().manual_seed(2)
+
+    def boxes(n):
+        xy = torch.rand(n, 2, generator=g) * 50
+        return torch.cat([xy, xy + 1 + torch.rand(n, 2, generator=g) * 30], dim=1)
+
+    gt = [boxes(3), boxes(0), boxes(1), boxes(5)]
+    predictions = [boxes(40), boxes(7), boxes(25), boxes(60)]
+    predictions[2][:3] = gt[2]  # exact matches, and ties for the low-quality rule
+    matcher = Matcher([0.3, 0.7], [0, -1, 1], allow_low_quality_matches=low_quality)
+    padded_gt, real = stack_padded(gt)
+    assert padded_gt.shape == (4, 5, 4) and real.sum(1).tolist() == [3, 0, 1, 5]
+    quality = torch.where(real[..., None], box_iou(padded_gt, stack_padded(predictions)[0]), -1.0)
+    matches, labels = matcher(quality)
+    for image, (t, p) in enumerate(zip(gt, predictions)):
+        expected_matches, expected_labels = matcher(box_iou(t, p))
+        assert torch.equal(labels[image, : len(p)], expected_labels)
+        assert torch.equal(matches[image, : len(p)], expected_matches)
 
 
 def test_subsample_labels_respects_budget_and_fraction():
@@ -125,6 +150,25 @@ def test_mask_targets_crop_the_matched_mask():
     assert targets[0].all()
     assert targets[1][:, :4].all() and not targets[1][:, 4:].any()  # the mask fills the box's left half
     assert not targets[2][:, :4].any() and targets[2][:, 4:].all()
+
+
+def test_batch_mask_targets_equal_one_call_per_image_with_one_read_per_mask_size():
+    g = torch.Generator().manual_seed(5)
+    sizes = [(40, 48), (40, 48), (32, 40), (40, 48), (40, 48)]
+    counts = [3, 0, 2, 4, 1]  # masks per image; the second image has none (and so no boxes)
+    masks = [torch.rand(k, h, w, generator=g) > 0.5 for k, (h, w) in zip(counts, sizes)]
+    boxes, index = [], []
+    for k, (h, w) in zip(counts, sizes):
+        n = 2 * k
+        xy = torch.rand(n, 2, generator=g) * torch.tensor([w, h]) * 0.7
+        boxes.append(torch.cat([xy, xy + 1 + torch.rand(n, 2, generator=g) * 20], dim=1))
+        index.append(torch.randint(0, max(k, 1), (n,), generator=g))
+    per_image = torch.cat([mask_targets(m, i, b, 14) for m, i, b in zip(masks, index, boxes) if len(b)])
+    with count_ops() as count:
+        batched = batch_mask_targets(masks, index, boxes, 14)
+    assert torch.equal(batched, per_image)
+    assert count.syncs == {"numpy": 2}  # one RoIAlign per mask size, not per image
+    assert batch_mask_targets(masks[1:2], index[1:2], boxes[1:2], 14).shape == (0, 14, 14)
 
 
 def test_instances_index_cat_and_validation():

@@ -1,5 +1,6 @@
 import itertools
 
+import numpy as np
 import pytest
 import torch
 
@@ -146,3 +147,27 @@ def test_fpn_levels_in_one_pass_match_one_call_per_level():
     torch.testing.assert_close(results[0][0], results[1][0], rtol=0, atol=1e-12)
     for new, old in zip(results[0][1], results[1][1]):
         torch.testing.assert_close(new, old, rtol=0, atol=1e-12)
+
+
+def test_chunk_plan_covers_every_roi_once_within_memory_and_merges_where_padding_is_cheap():
+    from usl.model.ops.roi_align import _CHUNK_COST, _plan_chunks
+
+    rng = np.random.default_rng(0)
+    heights = np.ceil(rng.uniform(1, 50, 1000) ** rng.uniform(0.5, 1.0, 1000))
+    widths = np.ceil(rng.uniform(1, 50, 1000) ** rng.uniform(0.5, 1.0, 1000))
+    for channels, budget in ((256, 1 << 24), (1, 1 << 24), (256, 1 << 16)):
+        plan = _plan_chunks(heights, widths, channels, budget)
+        rois = np.concatenate([index for index, _, _ in plan])
+        assert sorted(rois.tolist()) == list(range(len(heights)))
+        for index, h, w in plan:
+            assert h == heights[index].max() and w == widths[index].max()
+            assert len(index) == 1 or len(index) * channels * h * w <= budget
+        cost = sum(len(index) * channels * h * w + _CHUNK_COST for index, h, w in plan)
+        one_per_size = {(h, w): 0 for h, w in zip(heights, widths)}
+        for h, w in zip(heights, widths):
+            one_per_size[(h, w)] += 1
+        unmerged = sum(  # no padding at all: one chunk per window size (split to fit the budget)
+            n * channels * h * w + -(-n // max(1, budget // (channels * h * w))) * _CHUNK_COST
+            for (h, w), n in one_per_size.items()
+        )
+        assert cost <= unmerged

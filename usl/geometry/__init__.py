@@ -4,7 +4,7 @@ from usl.geometry.frustum import cube_to_frustum, frustum_homography, frustum_to
 from usl.geometry.icosphere import ico_sphere
 from usl.geometry.meshes import Meshes
 from usl.geometry.nearest import chamfer_directions, nearest_neighbors
-from usl.geometry.sampling import face_areas_packed, sample_points_from_meshes
+from usl.geometry.sampling import face_areas_packed, sample_points_from_meshes, sample_points_in_groups
 from usl.geometry.topology import MeshTemplate, faces_on_each_edge, uniform_laplacian, unique_edges
 
 __all__ = [
@@ -18,6 +18,7 @@ __all__ = [
     "ico_sphere",
     "nearest_neighbors",
     "sample_points_from_meshes",
+    "sample_points_in_groups",
     "faces_on_each_edge",
     "uniform_laplacian",
     "unique_edges",

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Sequence
+
 import torch
 
 from usl.geometry.meshes import Meshes
@@ -44,6 +46,21 @@ def sample_points_from_meshes(
         ``return_normals`` also (B, num_samples, 3) unit normals of the faces they lie on (by the
         faces' winding; zero on degenerate faces), for Mesh R-CNN's normal loss.
     """
+    return sample_points_in_groups(meshes, num_samples, [len(meshes)], [generator], return_normals)
+
+
+def sample_points_in_groups(
+    meshes: Meshes,
+    num_samples: int,
+    group_sizes: Sequence[int],
+    generators: Sequence[torch.Generator | None],
+    return_normals: bool = False,
+) -> Tensor | tuple[Tensor, Tensor]:
+    """:func:`sample_points_from_meshes` of consecutive groups of meshes (``group_sizes``), group i
+    drawing from ``generators[i]``: the same points as one call per group, with only the draws
+    made group by group (e.g. the meshes of several samples, each sample keying its own draws)."""
+    if sum(group_sizes) != len(meshes) or len(generators) != len(group_sizes):
+        raise ValueError(f"{len(meshes)} meshes in groups {list(group_sizes)} with {len(generators)} generators")
     verts, faces = meshes.verts_packed(), meshes.faces_packed()
     if len(meshes) == 0:
         return verts.new_zeros(0, num_samples, 3)
@@ -54,11 +71,16 @@ def sample_points_from_meshes(
         real = _faces_padded(meshes, torch.ones(faces.shape[0], dtype=verts.dtype, device=verts.device))
         degenerate = areas.sum(1, keepdim=True) <= 0
         weights = torch.where(degenerate, real, areas)
-        local = torch.multinomial(weights, num_samples, replacement=True, generator=generator)
+        local, r = [], []
+        for group, generator in zip(weights.split(list(group_sizes)), generators):
+            if len(group):
+                local.append(torch.multinomial(group, num_samples, replacement=True, generator=generator))
+                shape = (len(group), num_samples, 2)
+                r.append(torch.rand(shape, dtype=verts.dtype, device=verts.device, generator=generator))
+        local, r = (torch.cat(parts) if len(parts) > 1 else parts[0] for parts in (local, r))
         first_face = torch.cumsum(meshes.num_faces_per_mesh(), 0) - meshes.num_faces_per_mesh()
         face_idx = local + first_face[:, None]
     corners = verts[faces[face_idx]]  # (B, S, 3 corners, 3)
-    r = torch.rand(len(meshes), num_samples, 2, dtype=verts.dtype, device=verts.device, generator=generator)
     s = r[..., 0].sqrt()
     bary = torch.stack([1.0 - s, s * (1.0 - r[..., 1]), s * r[..., 1]], dim=-1)
     points = (bary.unsqueeze(-1) * corners).sum(-2)

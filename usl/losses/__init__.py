@@ -3,6 +3,8 @@ and Mesh R-CNN's 3D mesh losses for the 3D-supervised baseline."""
 
 from usl.losses.mesh3d import ChamferNormal, chamfer_normal_loss
 from usl.losses.regularizers import (
+    edge_length_per_mesh,
+    laplacian_per_mesh,
     laplacian_smoothing_loss,
     mesh_edge_loss,
     normal_consistency,
@@ -26,7 +28,9 @@ __all__ = [
     "SilhouetteBCE",
     "chamfer_normal_loss",
     "combine_losses",
+    "edge_length_per_mesh",
     "l2d_loss",
+    "laplacian_per_mesh",
     "laplacian_smoothing_loss",
     "normal_consistency",
     "mesh_edge_loss",

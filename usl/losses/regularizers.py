@@ -9,17 +9,25 @@ from usl.geometry.meshes import Meshes
 Tensor = torch.Tensor
 
 
-def _mean_per_mesh(values: Tensor, mesh_idx: Tensor, num_meshes: int) -> Tensor:
-    """Average ``values`` within each mesh, then over meshes (meshes without entries count as 0).
-
-    An empty batch gives a zero that is still connected to the graph.
-    """
-    if num_meshes == 0:
-        return values.sum() * 0.0
+def _per_mesh(values: Tensor, mesh_idx: Tensor, num_meshes: int) -> Tensor:
+    """The mean of ``values`` within each mesh: (num_meshes,), 0 for meshes without entries."""
     sums = values.new_zeros(num_meshes).index_add(0, mesh_idx, values)
     # index_add, not bincount: bincount's output size is read from the device
     counts = values.new_zeros(num_meshes).index_add(0, mesh_idx, torch.ones_like(values)).clamp(min=1)
-    return (sums / counts).mean()
+    return sums / counts
+
+
+def _mean_per_mesh(per_mesh: Tensor) -> Tensor:
+    """The mean over meshes; an empty batch gives a zero that is still connected to the graph."""
+    return per_mesh.sum() * 0.0 if per_mesh.numel() == 0 else per_mesh.mean()
+
+
+def edge_length_per_mesh(meshes: Meshes) -> Tensor:
+    """Each mesh's mean squared edge length over its unique undirected edges: (N,)."""
+    edges = meshes.edges_packed()
+    verts = meshes.verts_packed()
+    sq_len = (verts[edges[:, 0]] - verts[edges[:, 1]]).pow(2).sum(dim=1)
+    return _per_mesh(sq_len, meshes.edges_packed_to_mesh_idx(), len(meshes))
 
 
 def mesh_edge_loss(meshes: Meshes) -> Tensor:
@@ -28,10 +36,7 @@ def mesh_edge_loss(meshes: Meshes) -> Tensor:
     Uses the unique undirected edges (``Meshes.edges_packed``), like PyTorch3D's
     ``mesh_edge_loss`` with target length 0.
     """
-    edges = meshes.edges_packed()
-    verts = meshes.verts_packed()
-    sq_len = (verts[edges[:, 0]] - verts[edges[:, 1]]).pow(2).sum(dim=1)
-    return _mean_per_mesh(sq_len, meshes.edges_packed_to_mesh_idx(), len(meshes))
+    return _mean_per_mesh(edge_length_per_mesh(meshes))
 
 
 def offset_l2_loss(offsets: Tensor) -> Tensor:
@@ -52,8 +57,13 @@ def laplacian_smoothing_loss(meshes: Meshes) -> Tensor:
     ``(L V)_i = v_i - mean(neighbours of v_i)`` (``uniform_laplacian``), as PyTorch3D's
     ``mesh_laplacian_smoothing(method="uniform")``.
     """
+    return _mean_per_mesh(laplacian_per_mesh(meshes))
+
+
+def laplacian_per_mesh(meshes: Meshes) -> Tensor:
+    """Each mesh's mean ‖(L V)_i‖ (see :func:`laplacian_smoothing_loss`): (N,)."""
     lap = torch.sparse.mm(meshes.laplacian_packed(), meshes.verts_packed())
-    return _mean_per_mesh(torch.linalg.vector_norm(lap, dim=1), meshes.verts_packed_to_mesh_idx(), len(meshes))
+    return _per_mesh(torch.linalg.vector_norm(lap, dim=1), meshes.verts_packed_to_mesh_idx(), len(meshes))
 
 
 def normal_consistency(verts: Tensor, faces: Tensor, pairs: Tensor) -> Tensor:

@@ -18,7 +18,6 @@ silhouettes with sigma ~ 1e-4 are not safe in half precision.
 
 from __future__ import annotations
 
-import itertools
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -26,14 +25,13 @@ import torch
 
 from usl.model.config import LossConfig
 from usl.data.samples import MultiViewSample
-from usl.geometry import Meshes, MeshTemplate, sample_points_from_meshes
+from usl.geometry import Meshes, MeshTemplate, sample_points_in_groups
 from usl.geometry.cameras import relative_transform, transform_points
 from usl.losses import (
+    edge_length_per_mesh,
     l2d_loss,
-    laplacian_smoothing_loss,
-    mesh_edge_loss,
+    laplacian_per_mesh,
     normal_consistency,
-    offset_l2_loss,
     sample_mask_points,
     silhouette_bce_loss,
     silhouette_chamfer_loss,
@@ -132,7 +130,7 @@ def multiview_silhouette_loss(
     is_input = pairs.is_input
     others = present & ~is_input
     other_views = (
-        {"iou_pass_views": _mean(xent.gate, others), "iou_views": _mean(xent.iou, others)}
+        {"iou_pass_views": (xent.gate, others), "iou_views": (xent.iou, others)}
         if any(len(sample.views) > 1 for sample in samples)
         else {}
     )
@@ -144,65 +142,86 @@ def multiview_silhouette_loss(
     shape_terms = xent if soft_iou is None else xent._replace(loss=xent.loss + cfg.weights.soft_iou * soft_iou)
     l3d = (l2d_loss(dist_factor * dist, shape_terms) * pairs.weight).sum()
     dist_part = (dist_factor * dist * pairs.weight).sum()  # the gated l_xent part is the rest of l_2D
-    stats = {
-        **({"l_dist": _mean(dist.detach(), present)} if dist_factor else {}),
-        "l_xent": _mean(xent.loss.detach(), present),
-        "l_xent_reached": _mean(xent.loss_reached, present),
-        **({"l_soft_iou": _mean(soft_iou.detach(), present)} if soft_iou is not None else {}),
-        "unreached": _mean(xent.unreached, present),
-        "xent_gate": _mean(xent.gate, present),
-        "iou_input": _mean(xent.iou, present & is_input),
-        **other_views,
-        "dist_factor": l3d.new_tensor(dist_factor),
-    }
+    stats = _means(
+        {
+            **({"l_dist": (dist.detach(), present)} if dist_factor else {}),
+            "l_xent": (xent.loss.detach(), present),
+            "l_xent_reached": (xent.loss_reached, present),
+            **({"l_soft_iou": (soft_iou.detach(), present)} if soft_iou is not None else {}),
+            "unreached": (xent.unreached, present),
+            "xent_gate": (xent.gate, present),
+            "iou_input": (xent.iou, present & is_input),
+            **other_views,
+        }
+    )
+    stats["dist_factor"] = l3d.new_tensor(dist_factor)
     return SilhouetteLoss(l3d, dist_part, l3d - dist_part, stats)
 
 
-def _mean(values: Tensor, keep: Tensor) -> Tensor:
-    """Mean of ``values`` over the pairs ``keep`` marks (0 if none), without reading the device."""
-    keep = keep.to(torch.float32)
-    return (values.to(torch.float32) * keep).sum() / keep.sum().clamp(min=1.0)
+def _means(terms: dict[str, tuple[Tensor, Tensor]]) -> dict[str, Tensor]:
+    """Each ``name: (values, keep)``'s mean of ``values`` over the pairs ``keep`` marks (0 if none),
+    all in one stacked reduction, without reading the device."""
+    values = torch.stack([value.to(torch.float32) for value, _ in terms.values()])
+    keep = torch.stack([mask.to(torch.float32) for _, mask in terms.values()])
+    return dict(zip(terms, ((values * keep).sum(dim=1) / keep.sum(dim=1).clamp(min=1.0)).unbind()))
 
 
 def _gather_pairs(
     verts_cam: Tensor, faces: Tensor, samples: list[MultiViewSample], counts: list[int], cfg: LossConfig
 ) -> _Pairs:
-    """All pairs, one block per sample: its N objects in each of its M views (view-major)."""
+    """All pairs, one block per sample: its N objects in each of its M views (view-major). The
+    random draws go sample by sample (each keyed by its sample); the cameras and the transforms
+    into every view run once for the batch."""
     device, batch_size = verts_cam.device, len(samples)
-    parts: dict[str, list] = {name: [] for name in _Pairs.__dataclass_fields__}
-    for sample, verts in zip(samples, verts_cam.split(counts)):
-        if not len(verts):
+    parts: dict[str, list] = {name: [] for name in ("true_points", "true_lengths", "masks", "occluders")}
+    poses, input_views, intrinsics, present, sizes = [], [], [], [], []
+    # each sample's generator keys its draws: the same points whatever batch it lands in
+    generators = [torch.Generator(device=device).manual_seed(sample.seed) for sample in samples]
+    drawing = [index for index, count in enumerate(counts) if count]
+    surfaces = sample_points_in_groups(
+        Meshes.from_shared_topology(verts_cam, faces),
+        cfg.mesh_points,
+        [counts[index] for index in drawing],
+        [generators[index] for index in drawing],
+    )
+    pair_rows: list[tuple[int, int, int, int]] = []  # per pair: object row, view row, sample, is input view
+    first_row = 0
+    for index, (sample, verts) in enumerate(zip(samples, verts_cam.split(counts))):
+        num_objects, num_views, start = len(verts), len(sample.views), first_row
+        first_row += num_objects
+        if not num_objects:
             continue
-        num_objects, num_views = len(verts), len(sample.views)
-        # the sample's generator keys its draws: the same points whatever batch it lands in
-        generator = torch.Generator(device=device).manual_seed(sample.seed)
-        surface = sample_points_from_meshes(Meshes.from_shared_topology(verts, faces), cfg.mesh_points, generator)
-        poses = torch.stack([view.cam_to_world for view in sample.views])
-        to_view = relative_transform(poses[:1], poses).float()[:, None]  # (M, 1, 4, 4)
         masks = _view_masks(sample)
         true_points, true_lengths = sample_mask_points(
-            masks if isinstance(masks, Tensor) else stack_masks(masks), cfg.mask_points, generator=generator
+            masks if isinstance(masks, Tensor) else stack_masks(masks), cfg.mask_points, generator=generators[index]
         )
-        present = torch.cat([view.present for view in sample.views]).bool()
-        parts["verts"].append(transform_points(verts[None], to_view).flatten(0, 1))
-        parts["points"].append(transform_points(surface[None], to_view).flatten(0, 1))
         parts["true_points"].append(true_points)
         parts["true_lengths"].append(true_lengths)
         parts["masks"].append(masks)
         if cfg.ignore_occluders:
             parts["occluders"].append(_occluders(sample))
-        parts["K"].append(torch.stack([view.K.float() for view in sample.views]).repeat_interleave(num_objects, 0))
-        sizes = torch.tensor([view.size for view in sample.views], device=device)
-        parts["sizes"].append(sizes.repeat_interleave(num_objects, 0))
-        parts["present"].append(present)
-        parts["weight"].append(present.float() / (present.sum().clamp(min=1) * batch_size))
-        is_input = torch.zeros(num_views, num_objects, dtype=torch.bool, device=device)
-        is_input[0] = True
-        parts["is_input"].append(is_input.flatten())
+        pair_rows += [(start + o, len(poses) + j, index, j == 0) for j in range(num_views) for o in range(num_objects)]
+        input_views += [len(poses)] * num_views
+        poses += [view.cam_to_world for view in sample.views]
+        intrinsics += [view.K for view in sample.views]
+        present += [view.present for view in sample.views]
+        sizes += [view.size for view in sample.views]
+    pair_object, pair_view, pair_sample, is_input = torch.tensor(pair_rows, device=device).T
+    poses, input_views = torch.stack(poses), torch.tensor(input_views, device=device)
+    to_view = relative_transform(poses[input_views], poses).float()[pair_view]  # (P, 4, 4)
+    present = torch.cat(present).bool()
+    per_sample = torch.zeros(batch_size, dtype=torch.long, device=device).index_add(0, pair_sample, present.long())
     masks, occluders = parts.pop("masks"), parts.pop("occluders")
     return _Pairs(
+        verts=transform_points(verts_cam[pair_object], to_view),
+        points=transform_points(surfaces[pair_object], to_view),
         masks=_join_masks(masks),
         occluders=_join_masks(occluders) if cfg.ignore_occluders else None,
+        K=torch.stack(intrinsics).float()[pair_view],
+        sizes=torch.tensor(sizes, device=device)[pair_view],
+        present=present,
+        weight=present.float() / (per_sample[pair_sample].clamp(min=1) * batch_size),
+        is_input=is_input.bool(),
         **{name: torch.cat(values) for name, values in parts.items()},
     )
 
@@ -234,28 +253,36 @@ def shape_regularizers(
     """Edge, ½‖dV‖² (summed over stages, pre-tanh), Laplacian and normal-consistency terms, each a
     per-image mean over objects averaged over the batch. Terms not in ``need`` are None (not computed).
 
-    Regularizers act on the normalized-cube meshes, so their scale does not depend on layout.
+    Regularizers act on the normalized-cube meshes, so their scale does not depend on layout. All
+    objects are computed at once (they share the template), then averaged image by image.
     """
-    zero = verts_cube.sum() * 0.0
-    result: dict[str, Tensor | None] = {name: (zero.clone() if need.get(name) else None) for name in REGULARIZERS}
-    faces = template.faces
-    starts = [0, *itertools.accumulate(counts)]
-    batch = len(counts)
-    for index in range(batch):
-        rows = slice(starts[index], starts[index + 1])
-        if starts[index + 1] == starts[index]:
-            continue
+    per_object: dict[str, Tensor] = {}
+    if verts_cube.shape[0]:
+        verts = verts_cube.float()
         if need.get("edge") or need.get("laplacian"):
-            meshes = Meshes.from_shared_topology(verts_cube[rows].float(), faces, template.edges)
+            meshes = Meshes.from_shared_topology(verts, template.faces, template.edges)
         if need.get("edge"):
-            result["edge"] = result["edge"] + mesh_edge_loss(meshes) / batch
+            per_object["edge"] = edge_length_per_mesh(meshes)
         if need.get("laplacian"):
-            result["laplacian"] = result["laplacian"] + laplacian_smoothing_loss(meshes) / batch
+            per_object["laplacian"] = laplacian_per_mesh(meshes)
         if need.get("normal"):
-            result["normal"] = (
-                result["normal"]
-                + normal_consistency(verts_cube[rows].float(), faces, template.edge_faces).mean() / batch
-            )
-        if need.get("offset_l2"):
-            result["offset_l2"] = result["offset_l2"] + sum(offset_l2_loss(o[rows]) for o in offsets) / batch
+            per_object["normal"] = normal_consistency(verts, template.faces, template.edge_faces)
+        if need.get("offset_l2") and offsets:
+            per_object["offset_l2"] = 0.5 * torch.stack(offsets).pow(2).sum(dim=-1).mean(dim=-1).sum(dim=0)
+    zero = verts_cube.sum() * 0.0
+    batch = len(counts)
+    image = torch.repeat_interleave(
+        torch.arange(batch, device=verts_cube.device),
+        torch.tensor(counts, device=verts_cube.device),
+        output_size=verts_cube.shape[0],
+    )
+    objects = torch.tensor(counts, dtype=torch.float32, device=verts_cube.device).clamp(min=1)
+    result: dict[str, Tensor | None] = {}
+    for name in REGULARIZERS:
+        if not need.get(name):
+            result[name] = None
+        elif name in per_object:  # per-image means (an image without objects adds 0), over the batch
+            result[name] = (zero.new_zeros(batch).index_add(0, image, per_object[name]) / objects).sum() / batch
+        else:
+            result[name] = zero.clone()
     return result

@@ -2,7 +2,13 @@
 
 from .box_head import FastRCNNFCHead, FastRCNNOutputLayers
 from .config import AnchorConfig, BoxHeadConfig, DetectorConfig, MaskHeadConfig, ROIHeadsConfig, RPNConfig
-from .mask_head import MaskRCNNConvUpsampleHead, mask_rcnn_loss, mask_targets, paste_masks_in_image
+from .mask_head import (
+    MaskRCNNConvUpsampleHead,
+    batch_mask_targets,
+    mask_rcnn_loss,
+    mask_targets,
+    paste_masks_in_image,
+)
 from .mask_rcnn import InvalidTargetError, MaskRCNN
 from .matcher import Matcher, label_counts, subsample_labels, subsample_labels_dense
 from .poolers import MultiScaleRoIAlign, assign_boxes_to_levels
@@ -33,6 +39,7 @@ __all__ = [
     "assign_boxes_to_levels",
     "build_roi_heads",
     "mask_rcnn_loss",
+    "batch_mask_targets",
     "mask_targets",
     "paste_masks_in_image",
     "label_counts",

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Sequence
+
 import torch
 import torch.nn.functional as F
 from torch import nn
@@ -45,6 +47,33 @@ def mask_targets(gt_masks: Tensor, gt_index: Tensor, boxes: Tensor, resolution: 
     rois = torch.cat([gt_index[:, None].to(boxes.dtype), boxes], dim=1)
     crops = roi_align(gt_masks[:, None], rois, resolution, spatial_scale=1.0, sampling_ratio=0, aligned=True)
     return crops[:, 0] >= 0.5
+
+
+def batch_mask_targets(
+    gt_masks: Sequence[Tensor], gt_index: Sequence[Tensor], boxes: Sequence[Tensor], resolution: int
+) -> Tensor:
+    """:func:`mask_targets` of several images, rows image after image: one RoIAlign (one host read)
+    per distinct mask size instead of one per image, each image's masks stacked with its ``gt_index``
+    offset into the stack."""
+    groups: dict[tuple[int, ...], list[int]] = {}
+    for image, masks in enumerate(gt_masks):
+        if len(boxes[image]):
+            groups.setdefault(tuple(masks.shape[-2:]), []).append(image)
+    crops = {}
+    for images in groups.values():
+        offsets = [0]
+        for image in images[:-1]:
+            offsets.append(offsets[-1] + len(gt_masks[image]))
+        stacked = mask_targets(
+            torch.cat([gt_masks[image] for image in images]),
+            torch.cat([gt_index[image] + offset for image, offset in zip(images, offsets)]),
+            torch.cat([boxes[image] for image in images]),
+            resolution,
+        )
+        crops.update(zip(images, stacked.split([len(boxes[image]) for image in images])))
+    if not crops:
+        return torch.zeros((0, resolution, resolution), dtype=torch.bool, device=gt_masks[0].device)
+    return torch.cat([crops[image] for image in sorted(crops)])
 
 
 def mask_rcnn_loss(mask_logits: Tensor, classes: Tensor, targets: Tensor) -> Tensor:

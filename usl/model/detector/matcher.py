@@ -33,22 +33,22 @@ class Matcher:
         self.allow_low_quality_matches = allow_low_quality_matches
 
     def __call__(self, quality: Tensor) -> tuple[Tensor, Tensor]:
-        """``quality`` (G, P) IoUs -> (matched gt index (P,), label (P,)).
+        """``quality`` (..., G, P) IoUs -> (matched gt index (..., P), label (..., P)), e.g. a batch of
+        images' (N, G, P) with absent ground truth rows padded with -1 (they match nothing).
 
         With no ground truth every prediction is background (index 0 is meaningless then).
         """
-        num_predictions = quality.shape[1]
-        if quality.shape[0] == 0:
-            zeros = quality.new_zeros(num_predictions, dtype=torch.long)
+        if quality.shape[-2] == 0:
+            zeros = quality.new_zeros(quality.shape[:-2] + quality.shape[-1:], dtype=torch.long)
             return zeros, zeros.clone()
-        matched_quality, matches = quality.max(dim=0)
+        matched_quality, matches = quality.max(dim=-2)
         labels = torch.full_like(matches, self.labels[0])
         for threshold, label in zip(self.thresholds, self.labels[1:]):  # where, not t[mask] = v: no device read
             labels = torch.where(matched_quality >= threshold, label, labels)
         if self.allow_low_quality_matches:
-            best_per_gt = quality.max(dim=1, keepdim=True).values
+            best_per_gt = quality.max(dim=-1, keepdim=True).values
             # Ties count: every prediction achieving a gt's best IoU (> 0) is a match.
-            is_best = ((quality == best_per_gt) & (best_per_gt > 0)).any(dim=0)
+            is_best = ((quality == best_per_gt) & (best_per_gt > 0)).any(dim=-2)
             labels = torch.where(is_best, 1, labels)
         return matches, labels
 

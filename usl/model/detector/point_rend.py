@@ -24,7 +24,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from .config import PointRendConfig
-from .mask_head import mask_rcnn_loss, mask_targets
+from .mask_head import batch_mask_targets, mask_rcnn_loss
 from .structures import Instances
 
 Tensor = torch.Tensor
@@ -206,12 +206,7 @@ class PointRendMaskHead(nn.Module):
         coarse = self.coarse_logits(feature, boxes)
         classes = torch.cat([p.gt_classes for p in proposals])
         resolution = coarse.shape[-1]
-        crops = [
-            mask_targets(t.gt_masks, p.gt_index, p.proposal_boxes, resolution)
-            for p, t in zip(proposals, targets)
-            if len(p)
-        ]
-        gt = torch.cat(crops) if crops else coarse.new_zeros((0, resolution, resolution))
+        gt = batch_mask_targets([t.gt_masks for t in targets], [p.gt_index for p in proposals], boxes, resolution)
         loss = {"loss_mask": mask_rcnn_loss(coarse, classes, gt.to(coarse.dtype))}
         points = self._training_points(coarse, classes)
         labels = [

@@ -14,10 +14,16 @@ import torch
 from torch import nn
 
 from ..backbone import Registry, ShapeSpec
-from ..ops import box_iou
+from ..ops import box_iou, stack_padded
 from .box_head import FastRCNNFCHead, FastRCNNOutputLayers
 from .config import ROIHeadsConfig
-from .mask_head import MaskRCNNConvUpsampleHead, mask_rcnn_loss, mask_targets, paste_masks_in_image, select_class_masks
+from .mask_head import (
+    MaskRCNNConvUpsampleHead,
+    batch_mask_targets,
+    mask_rcnn_loss,
+    paste_masks_in_image,
+    select_class_masks,
+)
 from .matcher import Matcher, label_counts, subsample_labels
 from .point_rend import PointRendMaskHead
 from .poolers import MultiScaleRoIAlign
@@ -78,10 +84,12 @@ class StandardROIHeads(nn.Module):
         if self.training:
             if targets is None:
                 raise ValueError("ROI heads need targets in training mode")
-            proposals = self.label_and_sample_proposals(proposals, targets)
+            proposals, num_foreground = self.label_and_sample_proposals(proposals, targets)
             losses = self.forward_box(features, proposals)
             if self.mask_on:
-                losses.update(self.forward_mask(features, proposals, targets))
+                # each image's foreground rows come first, so a slice selects them: no device read
+                foreground = [p[:n] for p, n in zip(proposals, num_foreground)]
+                losses.update(self.mask_losses(features, foreground, targets))
             return proposals, losses
         detections = self.forward_box(features, proposals)
         if self.mask_on:
@@ -89,10 +97,13 @@ class StandardROIHeads(nn.Module):
         return detections, {}
 
     @torch.no_grad()
-    def label_and_sample_proposals(self, proposals: list[Instances], targets: list[Instances]) -> list[Instances]:
+    def label_and_sample_proposals(
+        self, proposals: list[Instances], targets: list[Instances]
+    ) -> tuple[list[Instances], list[int]]:
         """Match proposals (plus the gt boxes themselves) to gt and sample a fg/bg mix per image.
 
-        Background proposals get class ``num_classes`` and ``gt_index`` -1.
+        Returns the samples, each image's foreground first, and how many foreground each has (host
+        ints). Background proposals get class ``num_classes`` and ``gt_index`` -1.
         """
         candidates = [
             torch.cat([p.proposal_boxes, t.gt_boxes.to(p.proposal_boxes.dtype)])
@@ -100,9 +111,13 @@ class StandardROIHeads(nn.Module):
             else p.proposal_boxes
             for p, t in zip(proposals, targets)
         ]
-        matched = [self.matcher(box_iou(t.gt_boxes, boxes)) for t, boxes in zip(targets, candidates)]
+        # every image matched at once: ground truth and candidates padded (padded gt rows match nothing)
+        gt_boxes, real = stack_padded([t.gt_boxes for t in targets])
+        quality = torch.where(real[..., None], box_iou(gt_boxes, stack_padded(candidates)[0]), -1.0)
+        all_matches, all_labels = self.matcher(quality)
+        matched = [(m[: len(boxes)], lab[: len(boxes)]) for m, lab, boxes in zip(all_matches, all_labels, candidates)]
         counts = label_counts([labels for _, labels in matched])  # one host read for the batch's draws
-        sampled = []
+        sampled, num_foreground = [], []
         for proposal, target, boxes, (matches, labels), count in zip(proposals, targets, candidates, matched, counts):
             positive, negative = subsample_labels(
                 labels, self.cfg.batch_size_per_image, self.cfg.positive_fraction, count
@@ -125,7 +140,8 @@ class StandardROIHeads(nn.Module):
                     gt_index=torch.where(is_foreground, matched, -1),
                 )
             )
-        return sampled
+            num_foreground.append(len(positive))
+        return sampled, num_foreground
 
     def forward_box(self, features: Mapping[str, Tensor], proposals: list[Instances]):
         """Training: box losses; eval: detections after score threshold, per-class NMS and top-k."""
@@ -138,12 +154,8 @@ class StandardROIHeads(nn.Module):
             logits, deltas, proposals, cfg.score_thresh_test, cfg.nms_thresh_test, cfg.detections_per_image
         )
 
-    def forward_mask(
-        self, features: Mapping[str, Tensor], instances: list[Instances], targets: Optional[list[Instances]] = None
-    ):
-        """Training: the mask losses on foreground proposals; eval: adds ``pred_masks`` (bool, H x W)."""
-        if self.training:
-            return self.mask_losses(features, [p[p.gt_index >= 0] for p in instances], targets)
+    def forward_mask(self, features: Mapping[str, Tensor], instances: list[Instances]) -> list[Instances]:
+        """Adds ``pred_masks`` (bool, H x W) to the detections (in training :meth:`mask_losses` runs instead)."""
         probabilities = self.mask_probabilities(features, instances)
         for detections, probs in zip(instances, probabilities.split([len(d) for d in instances])):
             detections.pred_masks = paste_masks_in_image(
@@ -157,13 +169,13 @@ class StandardROIHeads(nn.Module):
         """``loss_mask``: per-pixel cross-entropy of the 28 x 28 mask of each proposal's class."""
         mask_logits = self.mask_head(self.mask_pooler(features, [p.proposal_boxes for p in foreground]))
         resolution = mask_logits.shape[-1]
-        targets_per_box = [
-            mask_targets(t.gt_masks, p.gt_index, p.proposal_boxes, resolution)
-            for p, t in zip(foreground, targets)
-            if len(p)
-        ]
         classes = torch.cat([p.gt_classes for p in foreground])
-        gt = torch.cat(targets_per_box) if targets_per_box else mask_logits.new_zeros((0, resolution, resolution))
+        gt = batch_mask_targets(
+            [t.gt_masks for t in targets],
+            [p.gt_index for p in foreground],
+            [p.proposal_boxes for p in foreground],
+            resolution,
+        )
         return {"loss_mask": mask_rcnn_loss(mask_logits, classes, gt) * self.cfg.mask_head.loss_weight}
 
     def mask_probabilities(self, features: Mapping[str, Tensor], detections: list[Instances]) -> Tensor:

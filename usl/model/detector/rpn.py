@@ -9,7 +9,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from ..backbone import ShapeSpec
-from ..ops import AnchorGenerator, Box2BoxTransform, batched_nms, box_iou, nonempty_boxes
+from ..ops import AnchorGenerator, Box2BoxTransform, batched_nms, box_iou, nonempty_boxes, stack_padded
 from .config import RPNConfig
 from .matcher import IGNORE, Matcher, subsample_labels_dense
 from .structures import ImageList, Instances
@@ -81,17 +81,17 @@ class RPN(nn.Module):
 
     @torch.no_grad()
     def label_anchors(self, anchors: Tensor, targets: list[Instances]) -> tuple[Tensor, Tensor]:
-        """Sampled anchor labels (N, A) in {-1, 0, 1} and matched gt boxes (N, A, 4)."""
-        all_labels, all_boxes = [], []
-        for target in targets:
-            gt_boxes = target.gt_boxes
-            matches, labels = self.matcher(box_iou(gt_boxes, anchors))
-            all_labels.append(labels)
-            all_boxes.append(gt_boxes[matches] if len(gt_boxes) else torch.zeros_like(anchors))
-        labels = subsample_labels_dense(
-            torch.stack(all_labels), self.cfg.batch_size_per_image, self.cfg.positive_fraction
-        )
-        return labels, torch.stack(all_boxes)
+        """Sampled anchor labels (N, A) in {-1, 0, 1} and matched gt boxes (N, A, 4), every image's
+        ground truth matched at once (padded with rows that match nothing)."""
+        gt_boxes, real = stack_padded([target.gt_boxes for target in targets])  # (N, G, 4), (N, G)
+        quality = torch.where(real[..., None], box_iou(gt_boxes, anchors[None]), -1.0)
+        matches, labels = self.matcher(quality)
+        if gt_boxes.shape[1]:
+            matched_boxes = torch.gather(gt_boxes, 1, matches[..., None].expand(-1, -1, 4))
+        else:
+            matched_boxes = anchors.new_zeros(len(targets), *anchors.shape)
+        labels = subsample_labels_dense(labels, self.cfg.batch_size_per_image, self.cfg.positive_fraction)
+        return labels, matched_boxes
 
     def losses(self, anchors: Tensor, logits: Tensor, deltas: Tensor, targets: list[Instances]) -> dict[str, Tensor]:
         """Sums over all anchors weighted by their sampled labels (no boolean indexing, so no device read)."""
@@ -117,18 +117,19 @@ class RPN(nn.Module):
         """Top-k per level, decode, clip, drop empty boxes, NMS per level, top-k per image."""
         pre_topk = self.cfg.pre_nms_topk_train if self.training else self.cfg.pre_nms_topk_test
         post_topk = self.cfg.post_nms_topk_train if self.training else self.cfg.post_nms_topk_test
-        boxes, scores, levels = [], [], []
+        top_deltas, top_anchors, scores, levels = [], [], [], []
         for level, (level_anchors, level_logits, level_deltas) in enumerate(zip(anchors, logits, deltas)):
             k = min(pre_topk, level_logits.shape[1])
             top_logits, top_index = level_logits.topk(k, dim=1)
             rows = torch.arange(level_logits.shape[0], device=top_index.device)[:, None]
-            decoded = self.box2box.apply_deltas(
-                level_deltas[rows, top_index].reshape(-1, 4), level_anchors[top_index].reshape(-1, 4)
-            )
-            boxes.append(decoded.view(-1, k, 4))
+            top_deltas.append(level_deltas[rows, top_index])
+            top_anchors.append(level_anchors[top_index])
             scores.append(top_logits)
             levels.append(torch.full((k,), level, device=top_index.device, dtype=torch.long))
-        boxes, scores, levels = torch.cat(boxes, 1), torch.cat(scores, 1), torch.cat(levels)
+        # every level decoded at once
+        top_anchors = torch.cat(top_anchors, 1)
+        boxes = self.box2box.apply_deltas(torch.cat(top_deltas, 1).reshape(-1, 4), top_anchors.reshape(-1, 4))
+        boxes, scores, levels = boxes.view(top_anchors.shape), torch.cat(scores, 1), torch.cat(levels)
 
         return self._nms_per_image(boxes, scores, levels, image_sizes, post_topk)
 

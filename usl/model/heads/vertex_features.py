@@ -60,15 +60,14 @@ def _sample_bilinear(feature_map: Tensor, image: Tensor, xy: Tensor) -> Tensor:
     height, width = feature_map.shape[-2:]
     corner = xy.floor()
     frac = xy - corner
-    out = 0.0
-    for dy in (0, 1):
-        for dx in (0, 1):
-            x, y = corner[:, 0] + dx, corner[:, 1] + dy
-            inside = (x >= 0) & (x <= width - 1) & (y >= 0) & (y <= height - 1)
-            weight = (frac[:, 0] if dx else 1 - frac[:, 0]) * (frac[:, 1] if dy else 1 - frac[:, 1]) * inside
-            taps = feature_map[image, :, y.clamp(0, height - 1).long(), x.clamp(0, width - 1).long()]
-            out = out + taps * weight[:, None]
-    return out
+    # the four taps (dx, dy) = (0, 0), (1, 0), (0, 1), (1, 1) stacked: one gather, one weighted sum
+    step = torch.tensor([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0], [1.0, 1.0]], device=xy.device, dtype=xy.dtype)
+    x, y = (corner + step[:, None]).unbind(-1)  # (4, P) each
+    inside = (x >= 0) & (x <= width - 1) & (y >= 0) & (y <= height - 1)
+    along_x, along_y = torch.stack([1 - frac, frac]).unbind(-1)  # (2, P) each: weights of the d = 0, 1 taps
+    weight = (along_x[None] * along_y[:, None]).reshape(4, -1) * inside  # (dy, dx) in the taps' order
+    taps = feature_map[image, :, y.clamp(0, height - 1).long(), x.clamp(0, width - 1).long()]  # (4, P, C)
+    return (taps * weight[..., None]).sum(0)
 
 
 def vertalign_features(roi_features: Tensor, verts_cube: Tensor) -> Tensor:

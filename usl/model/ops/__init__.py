@@ -10,6 +10,7 @@ from .boxes import (
     clip_boxes,
     nonempty_boxes,
     pairwise_intersection,
+    stack_padded,
 )
 from .nms import batched_nms, nms
 from .roi_align import RoIAlign, convert_boxes_to_rois, roi_align, roi_align_levels
@@ -31,4 +32,5 @@ __all__ = [
     "pairwise_intersection",
     "roi_align",
     "roi_align_levels",
+    "stack_padded",
 ]

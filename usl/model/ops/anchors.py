@@ -31,6 +31,10 @@ def cell_anchors(sizes: Sequence[float], aspect_ratios: Sequence[float]) -> Tens
     return torch.tensor(anchors, dtype=torch.float32)
 
 
+# feature-size layouts whose anchors are kept (evaluation at several image sizes)
+_CACHED_GRIDS = 8
+
+
 class AnchorGenerator(nn.Module):
     """One set of cell anchors per feature level, tiled at that level's stride.
 
@@ -58,6 +62,8 @@ class AnchorGenerator(nn.Module):
         self.offset = offset
         for level, level_sizes in enumerate(sizes):
             self.register_buffer(f"cell_anchors_{level}", cell_anchors(level_sizes, aspect_ratios), persistent=False)
+        # the grids of the last few feature sizes: a training run sees one or a few, so a step builds none
+        self._grids: dict[tuple, list[Tensor]] = {}
 
     @property
     def num_anchors_per_location(self) -> list[int]:
@@ -67,9 +73,18 @@ class AnchorGenerator(nn.Module):
         return getattr(self, f"cell_anchors_{level}")
 
     def forward(self, feature_sizes: Sequence[tuple[int, int]]) -> list[Tensor]:
-        """Anchors ``(H * W * A, 4)`` for each level's ``(H, W)`` feature grid."""
+        """Anchors ``(H * W * A, 4)`` for each level's ``(H, W)`` feature grid (cached: do not modify them)."""
         if len(feature_sizes) != len(self.strides):
             raise ValueError(f"expected {len(self.strides)} feature levels, got {len(feature_sizes)}")
+        cell = self._cell(0)
+        key = (tuple((int(h), int(w)) for h, w in feature_sizes), cell.device, cell.dtype)
+        if key not in self._grids:
+            if len(self._grids) >= _CACHED_GRIDS:
+                self._grids.clear()
+            self._grids[key] = self._build(feature_sizes)
+        return list(self._grids[key])
+
+    def _build(self, feature_sizes: Sequence[tuple[int, int]]) -> list[Tensor]:
         anchors = []
         for level, ((height, width), stride) in enumerate(zip(feature_sizes, self.strides)):
             cell = self._cell(level)

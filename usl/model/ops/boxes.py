@@ -19,27 +19,38 @@ DEFAULT_SCALE_CLAMP = math.log(1000.0 / 16)
 
 
 def box_area(boxes: Tensor) -> Tensor:
-    """Area of each box, ``(N, 4) -> (N,)``; inverted boxes give negative areas."""
-    return (boxes[:, 2] - boxes[:, 0]) * (boxes[:, 3] - boxes[:, 1])
+    """Area of each box, ``(..., 4) -> (...)``; inverted boxes give negative areas."""
+    size = boxes[..., 2:] - boxes[..., :2]
+    return size[..., 0] * size[..., 1]
 
 
 def pairwise_intersection(boxes1: Tensor, boxes2: Tensor) -> Tensor:
-    """Intersection areas, ``(N, 4), (M, 4) -> (N, M)``."""
-    top_left = torch.maximum(boxes1[:, None, :2], boxes2[None, :, :2])
-    bottom_right = torch.minimum(boxes1[:, None, 2:], boxes2[None, :, 2:])
+    """Intersection areas, ``(..., N, 4), (..., M, 4) -> (..., N, M)`` (leading dims broadcast)."""
+    top_left = torch.maximum(boxes1[..., :, None, :2], boxes2[..., None, :, :2])
+    bottom_right = torch.minimum(boxes1[..., :, None, 2:], boxes2[..., None, :, 2:])
     wh = (bottom_right - top_left).clamp(min=0)
     return wh[..., 0] * wh[..., 1]
 
 
 def box_iou(boxes1: Tensor, boxes2: Tensor) -> Tensor:
-    """Pairwise intersection over union, ``(N, 4), (M, 4) -> (N, M)``.
+    """Pairwise intersection over union, ``(..., N, 4), (..., M, 4) -> (..., N, M)``, e.g. every
+    image's ground truth against its predictions at once (leading dims broadcast).
 
     Pairs whose union is empty (two degenerate boxes) give NaN, as in torchvision,
     so that they never pass an ``iou > threshold`` test.
     """
     inter = pairwise_intersection(boxes1, boxes2)
-    union = box_area(boxes1)[:, None] + box_area(boxes2)[None, :] - inter
+    union = box_area(boxes1)[..., :, None] + box_area(boxes2)[..., None, :] - inter
     return inter / union
+
+
+def stack_padded(boxes: Sequence[Tensor]) -> tuple[Tensor, Tensor]:
+    """Per-image ``(K_i, 4)`` boxes as one ``(N, max K_i, 4)`` tensor padded with zero boxes, and
+    the ``(N, max K_i)`` mask of real rows: batched maths over images without a per-image loop."""
+    longest = max((len(b) for b in boxes), default=0)
+    padded = torch.stack([torch.nn.functional.pad(b, (0, 0, 0, longest - len(b))) for b in boxes])
+    lengths = torch.tensor([len(b) for b in boxes], device=padded.device)
+    return padded, torch.arange(longest, device=padded.device) < lengths[:, None]
 
 
 def clip_boxes(boxes: Tensor, image_size: tuple[int, int]) -> Tensor:
@@ -112,6 +123,6 @@ class Box2BoxTransform:
 
 
 def _size_and_centre(boxes: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    widths = boxes[:, 2] - boxes[:, 0]
-    heights = boxes[:, 3] - boxes[:, 1]
-    return widths, heights, boxes[:, 0] + 0.5 * widths, boxes[:, 1] + 0.5 * heights
+    size = boxes[:, 2:] - boxes[:, :2]
+    centre = boxes[:, :2] + 0.5 * size
+    return size[:, 0], size[:, 1], centre[:, 0], centre[:, 1]

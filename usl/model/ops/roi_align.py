@@ -35,12 +35,11 @@ BoxesArg = Union[Tensor, Sequence[Tensor]]
 
 # Upper bound on the gathered feature elements held at once (64 MiB in float32).
 DEFAULT_CHUNK_ELEMENTS = 1 << 24
-# RoIs whose window sides agree within this factor are pooled together (padded to the largest).
+# RoIs whose window sides agree within this factor are pooled together (padded to the largest)...
 _BUCKET_GROWTH = 1.5
-# ...unless padding every window to the largest costs at most this factor more gathered pixels than
-# the windows hold, or fewer than _SMALL_CHUNK pixels: then one chunk (fewer ops) is cheaper.
-_PAD_WASTE = 3.0
-_SMALL_CHUNK = 1 << 14
+# ...and such groups merged while padding them to a common window gathers fewer elements than this:
+# a chunk costs a few dozen ops (forward and backward) whatever its size.
+_CHUNK_COST = 1 << 20
 
 
 def convert_boxes_to_rois(boxes: BoxesArg, like: Tensor) -> Tensor:
@@ -113,35 +112,50 @@ def roi_align_levels(
     device = first.device
     level = level.to(device)
     batch_index = rois[:, 0].long()
-    heights = torch.tensor([m.shape[2] for m in inputs], device=device)[level]
-    widths = torch.tensor([m.shape[3] for m in inputs], device=device)[level]
+    # Both axes at once: row 0 the y axis, row 1 the x axis, (2, K) each.
+    shapes = torch.tensor([[m.shape[2] for m in inputs], [m.shape[3] for m in inputs]], device=device)
+    map_size = shapes[:, level]
     spatial_scale = torch.tensor(list(scales), dtype=compute_dtype, device=device)[level]
     offset = 0.5 if aligned else 0.0
-    x0, y0, x1, y1 = (rois[:, i] * spatial_scale - offset for i in range(1, 5))
-    roi_w, roi_h = x1 - x0, y1 - y0
+    corners = (rois[:, 1:] * spatial_scale[:, None] - offset).T  # (4, K): x0, y0, x1, y1
+    start = corners[[1, 0]]
+    roi_size = corners[[3, 2]] - start
     if not aligned:
-        roi_w, roi_h = roi_w.clamp(min=1.0), roi_h.clamp(min=1.0)
-    grid_h, grid_w = _grid(roi_h, out_h, sampling_ratio), _grid(roi_w, out_w, sampling_ratio)
+        roi_size = roi_size.clamp(min=1.0)
+    bins = torch.tensor([[out_h], [out_w]], device=device)
+    grid = _grid(roi_size, bins, sampling_ratio)
     # The only device-to-host transfer: the sizes every tensor shape below depends on.
-    sizes = torch.stack([roi_h, roi_w, grid_h.to(roi_h.dtype), grid_w.to(roi_h.dtype), heights, widths], dim=1)
+    sizes = torch.cat([roi_size, grid.to(roi_size.dtype), map_size.to(roi_size.dtype)])  # (6, K)
     bounds = torch.stack([batch_index.min(), batch_index.max()]).to(sizes.dtype)
-    host = torch.cat([bounds, sizes.flatten()]).cpu().numpy().astype(np.float64)
+    host = torch.cat([bounds, sizes.T.flatten()]).cpu().numpy().astype(np.float64)
     if host[0] < 0 or host[1] >= num_images:
         raise ValueError(f"RoI batch indices must lie in [0, {num_images}), got [{int(host[0])}, {int(host[1])}]")
     host_roi_h, host_roi_w, host_grid_h, host_grid_w, host_h, host_w = np.nan_to_num(host[2:].reshape(-1, 6)).T
-    rows = _axis_samples(y0, roi_h, out_h, heights, grid_h, max(int(host_grid_h.max()), 1))
-    cols = _axis_samples(x0, roi_w, out_w, widths, grid_w, max(int(host_grid_w.max()), 1))
+    max_grid = max(int(host_grid_h.max()), int(host_grid_w.max()), 1)
+    samples = _axis_samples(start, roi_size, bins, map_size, grid, max(out_h, out_w), max_grid)
     window_h, window_w = _window_bound(host_roi_h, host_h), _window_bound(host_roi_w, host_w)
+    plan = _plan_chunks(window_h, window_w, channels, max_chunk_elements)
+    # Every RoI's axis matrices and window rows/columns, built once up to the largest chunk window;
+    # each chunk then takes its RoIs' leading window_h x window_w part.
+    window = int(max(max(h, w) for _, h, w in plan))
+    matrices = _axis_matrices(samples, window)  # (2, K, max bins, window)
+    # Rows/columns past the map's edge only occur where the matrices are zero; clamp them in.
+    ids = torch.minimum(samples.start[..., None] + torch.arange(window, device=device), map_size[..., None] - 1)
     # where each (level, image) map starts in the channels-last concatenation of all levels
     pixels = torch.tensor([m.shape[2] * m.shape[3] for m in inputs], device=device)
     level_start = torch.cumsum(pixels * num_images, 0) - pixels * num_images
     map_start = level_start[level] + batch_index * pixels[level]
-    plan = _plan_chunks(window_h, window_w, channels, max_chunk_elements)
+    window_rows = map_start[:, None] + ids[0] * map_size[1, :, None]  # (K, window) first pixel of each row
+    row_matrices, col_matrices, col_ids = matrices[0, :, :out_h], matrices[1, :, :out_w], ids[1]
     order = torch.from_numpy(np.concatenate([index for index, _, _ in plan])).to(device)  # one upload
     chunks, begin = [], 0
     for index, h, w in plan:
-        chunk = order[begin : begin + len(index)]
-        chunks.append(_Chunk.build(chunk, map_start, rows, cols, heights, widths, int(h), int(w)))
+        rois_of_chunk = order[begin : begin + len(index)]
+        h, w = int(h), int(w)
+        pixel = window_rows[rois_of_chunk, :h, None] + col_ids[rois_of_chunk, None, :w]
+        chunks.append(
+            _Chunk(rois_of_chunk, pixel, row_matrices[rois_of_chunk, :, :h], col_matrices[rois_of_chunk, :, :w])
+        )
         begin += len(index)
     # In compute_dtype under autocast too (as torchvision's autocast rule does): autocast would run
     # the pooling matmuls in bf16/fp16 and write them into the float32 output.
@@ -172,18 +186,15 @@ class RoIAlign(nn.Module):
 
 @dataclass
 class _AxisSamples:
-    """Bilinear taps of one axis for every RoI: ``index``/``weight`` are (K, bins, taps)."""
+    """Bilinear taps of A axes for every RoI: ``index``/``weight`` are (A, K, bins, taps)."""
 
     index: Tensor  # absolute feature row (or column) of each tap
     weight: Tensor  # bilinear weight / grid count; zero for invalid or padding taps
-    start: Tensor  # (K,) first row of the window the RoI touches
-
-    def take(self, chunk: Tensor) -> "_AxisSamples":
-        return _AxisSamples(self.index[chunk], self.weight[chunk], self.start[chunk])
+    start: Tensor  # (A, K) first row of the window the RoI touches
 
 
-def _grid(roi_size: Tensor, bins: int, sampling_ratio: int) -> Tensor:
-    """Samples per bin along one axis: fixed, or adaptive ``ceil(roi_size / bins)``."""
+def _grid(roi_size: Tensor, bins: Tensor, sampling_ratio: int) -> Tensor:
+    """Samples per bin along each axis: fixed, or adaptive ``ceil(roi_size / bins)``."""
     if sampling_ratio > 0:
         return torch.full_like(roi_size, sampling_ratio, dtype=torch.long)
     return torch.ceil(roi_size / bins).long().clamp(min=0)
@@ -199,21 +210,25 @@ def _window_bound(roi_size: np.ndarray, size: np.ndarray) -> np.ndarray:
 
 
 def _axis_samples(
-    start: Tensor, roi_size: Tensor, bins: int, sizes: Tensor, grid: Tensor, max_grid: int
+    start: Tensor, roi_size: Tensor, bins: Tensor, sizes: Tensor, grid: Tensor, max_bins: int, max_grid: int
 ) -> _AxisSamples:
-    """Sampling positions along one axis and their two bilinear taps (torchvision's rules);
-    ``sizes`` (K,) is the length of that axis in each RoI's map."""
-    size = sizes[:, None, None]
-    bin_size = roi_size / bins
-    grid_f = grid.clamp(min=1).to(start.dtype)[:, None, None]
-    bin_index = torch.arange(bins, device=start.device, dtype=start.dtype)[None, :, None]
+    """Sampling positions along the axes of every RoI and their two bilinear taps (torchvision's
+    rules): ``start``, ``roi_size``, ``sizes`` (the axis length of each RoI's map) and ``grid`` are
+    (A, K) for A axes, ``bins`` (A, 1) their bins, ``max_bins`` and ``max_grid`` host bounds of
+    ``bins`` and ``grid``; the result is (A, K, max_bins, 2 max_grid), padding with zero weight."""
+    size = sizes[..., None, None]
+    bin_size = (roi_size / bins)[..., None, None]
+    grid_f = grid.clamp(min=1).to(start.dtype)[..., None, None]
+    bin_index = torch.arange(max_bins, device=start.device)[:, None]
     sample_index = torch.arange(max_grid, device=start.device)
     coord = (
-        start[:, None, None]
-        + bin_index * bin_size[:, None, None]
-        + (sample_index.to(start.dtype)[None, None, :] + 0.5) * bin_size[:, None, None] / grid_f
+        start[..., None, None]
+        + bin_index.to(start.dtype) * bin_size
+        + (sample_index.to(start.dtype) + 0.5) * bin_size / grid_f
     )
-    valid = (sample_index[None, None, :] < grid[:, None, None]) & (coord >= -1.0) & (coord <= size)
+    valid = (
+        (bin_index < bins[..., None, None]) & (sample_index < grid[..., None, None]) & (coord >= -1.0) & (coord <= size)
+    )
     coord = coord.clamp(min=0.0)
     low = coord.floor().long()  # coord >= 0, so floor equals C's int() truncation
     at_edge = low >= size - 1
@@ -223,14 +238,14 @@ def _axis_samples(
     scale = valid.to(coord.dtype) / grid_f
 
     big = torch.iinfo(torch.long).max
-    window_start = torch.where(valid, low, big).flatten(1).amin(dim=1)
-    window_start = torch.where(valid.flatten(1).any(dim=1), window_start, torch.zeros_like(window_start))
+    window_start = torch.where(valid, low, big).flatten(-2).amin(dim=-1)
+    window_start = torch.where(valid.flatten(-2).any(dim=-1), window_start, torch.zeros_like(window_start))
     # Padding/invalid taps point at the window start with zero weight, so they cost nothing.
-    low = torch.where(valid, low, window_start[:, None, None])
-    high = torch.where(valid, high, window_start[:, None, None])
+    low = torch.where(valid, low, window_start[..., None, None])
+    high = torch.where(valid, high, window_start[..., None, None])
     return _AxisSamples(
-        index=torch.cat([low, high], dim=2),
-        weight=torch.cat([(1.0 - frac) * scale, frac * scale], dim=2),
+        index=torch.cat([low, high], dim=-1),
+        weight=torch.cat([(1.0 - frac) * scale, frac * scale], dim=-1),
         start=window_start,
     )
 
@@ -238,34 +253,64 @@ def _axis_samples(
 def _plan_chunks(
     heights: np.ndarray, widths: np.ndarray, channels: int, max_elements: int
 ) -> list[tuple[np.ndarray, int, int]]:
-    """Group RoIs whose windows have similar height and width (geometric buckets), then
-    split each group into chunks whose padded gather fits ``max_elements``.
+    """Chunks of RoIs, each padded to its largest window (rows of ``(rois, height, width)``).
 
-    Bucketing each axis separately bounds the padding waste (tall and wide windows are
-    never padded to each other's size) with a few dozen chunks in practice.
+    RoIs whose windows have similar height and width form groups (geometric buckets per axis, so
+    tall and wide windows are not padded to each other's size); consecutive groups, by window
+    area, are then merged where the padding gathers fewer elements than another chunk costs
+    (``_CHUNK_COST``), the cheapest such merge found by a dynamic programme over the groups; a
+    chunk whose padded gather passes ``max_elements`` is split.
     """
-    padded = len(heights) * heights.max() * widths.max()
-    if channels * padded <= max_elements and padded <= max(_PAD_WASTE * (heights * widths).sum(), _SMALL_CHUNK):
-        return [(np.arange(len(heights)), heights.max(), widths.max())]  # one chunk: padding costs little
     step = np.log(_BUCKET_GROWTH)
     buckets = np.ceil(np.log(heights) / step) * 4096 + np.ceil(np.log(widths) / step)
-    order = np.argsort(buckets, kind="stable")
-    _, starts = np.unique(buckets[order], return_index=True)
+    _, group_of = np.unique(buckets, return_inverse=True)
+    group_h, group_w = np.zeros(group_of.max() + 1), np.zeros(group_of.max() + 1)
+    np.maximum.at(group_h, group_of, heights)
+    np.maximum.at(group_w, group_of, widths)
+    by_area = np.argsort(group_h * group_w, kind="stable")
+    sizes = np.bincount(group_of)[by_area]
+    group_h, group_w = group_h[by_area], group_w[by_area]
+    # best[j]: the cheapest plan of the first j groups; a plan's last chunk holds groups cut[j]..j-1
+    best, cut = np.zeros(len(sizes) + 1), np.zeros(len(sizes) + 1, dtype=int)
+    for end in range(1, len(sizes) + 1):
+        first = np.arange(end)  # the last chunk's first group
+        high = np.maximum.accumulate(group_h[end - 1 :: -1])[::-1]
+        wide = np.maximum.accumulate(group_w[end - 1 :: -1])[::-1]
+        count = np.cumsum(sizes[end - 1 :: -1])[::-1]
+        cost = best[first] + _chunk_cost(count, channels * high * wide, max_elements)
+        cut[end] = int(np.argmin(cost))
+        best[end] = cost[cut[end]]
+    rank = np.empty_like(by_area)
+    rank[by_area] = np.arange(len(by_area))
+    order = np.argsort(rank[group_of], kind="stable")  # RoIs group by group, in area order
+    bounds = np.concatenate([[0], np.cumsum(sizes)])
+    segments, end = [], len(sizes)
+    while end:
+        segments.append((cut[end], end))
+        end = cut[end]
     chunks = []
-    for group in np.split(order, starts[1:]):
-        padded_cost = channels * int(heights[group].max()) * int(widths[group].max())
-        size = max(1, max_elements // max(padded_cost, 1))
+    for first, end in reversed(segments):
+        rois = order[bounds[first] : bounds[end]]
+        per_roi = channels * int(heights[rois].max()) * int(widths[rois].max())
+        size = max(1, max_elements // max(per_roi, 1))
         chunks += [
-            (part, heights[part].max(), widths[part].max()) for part in np.split(group, range(size, len(group), size))
+            (part, heights[part].max(), widths[part].max()) for part in np.split(rois, range(size, len(rois), size))
         ]
     return chunks
 
 
-def _axis_matrix(axis: _AxisSamples, window: int) -> Tensor:
-    """Dense (k, bins, window) interpolation matrix relative to each RoI's window start."""
-    local = axis.index - axis.start[:, None, None]
-    matrix = axis.weight.new_zeros(axis.index.shape[0], axis.index.shape[1], window)
-    return matrix.scatter_add_(2, local, axis.weight)
+def _chunk_cost(count: np.ndarray, per_roi: np.ndarray, max_elements: int) -> np.ndarray:
+    """Gathered elements plus ``_CHUNK_COST`` a chunk of ``count`` RoIs of ``per_roi`` padded
+    elements each, split to fit ``max_elements``."""
+    per_chunk = np.maximum(1, max_elements // np.maximum(per_roi, 1))
+    return count * per_roi + np.ceil(count / per_chunk) * _CHUNK_COST
+
+
+def _axis_matrices(axes: _AxisSamples, window: int) -> Tensor:
+    """Dense (A, K, bins, window) interpolation matrices relative to each RoI's window start."""
+    local = axes.index - axes.start[..., None, None]
+    matrix = axes.weight.new_zeros(*axes.index.shape[:-1], window)
+    return matrix.scatter_add_(-1, local, axes.weight)
 
 
 @dataclass
@@ -276,30 +321,6 @@ class _Chunk:
     pixel: Tensor  # (k, window_h, window_w) row of each window pixel in the channels-last levels
     row_matrix: Tensor  # (k, out_h, window_h)
     col_matrix: Tensor  # (k, out_w, window_w)
-
-    @classmethod
-    def build(
-        cls,
-        rois: Tensor,
-        map_start: Tensor,
-        rows: _AxisSamples,
-        cols: _AxisSamples,
-        heights: Tensor,
-        widths: Tensor,
-        window_h: int,
-        window_w: int,
-    ):
-        """``map_start`` (K,): first row of each RoI's (level, image) map; ``heights``/``widths`` (K,)
-        that map's size; ``window_h``/``window_w``: bounds of the chunk's windows (host ints,
-        see ``_window_bound``)."""
-        rows, cols = rows.take(rois), cols.take(rois)
-        device = rois.device
-        height, width = heights[rois, None], widths[rois, None]
-        # Rows/columns past the map's edge only occur where the matrices are zero; clamp them in.
-        row_ids = torch.minimum(rows.start[:, None] + torch.arange(window_h, device=device), height - 1)
-        col_ids = torch.minimum(cols.start[:, None] + torch.arange(window_w, device=device), width - 1)
-        pixel = map_start[rois, None, None] + row_ids[:, :, None] * width[:, :, None] + col_ids[:, None, :]
-        return cls(rois, pixel, _axis_matrix(rows, window_h), _axis_matrix(cols, window_w))
 
 
 def _channels_last(inputs: Sequence[Tensor]) -> Tensor:
