@@ -5,6 +5,7 @@
     python scripts/bench/count_ops.py --config tiny --data /data/scene_shapes_small  # real records
     python scripts/bench/count_ops.py --config tiny --cpu-steps 20         # and CPU seconds per step
     python scripts/bench/count_ops.py --config tiny --predict detections   # usl-predict's model call
+    python scripts/bench/count_ops.py --config tiny --compiled             # the CPU's compiled loops too
 
 One step of the trainer's own ``TrainStep`` (forward, backward, clipping, guard, optimizer) after
 ``--warmup`` steps, counted with ``usl.utils.op_count``: ATen ops dispatched, host syncs by kind (the
@@ -13,11 +14,16 @@ deterministic, so two commits compare exactly; ``--cpu-steps`` adds the median p
 that many uncounted steps (compare commits in one run, alternating, with OMP_NUM_THREADS=1).
 ``--predict MODE`` counts one ``USLModel.predict`` call on the batch's input views instead (what
 usl-predict and usl-eval run per batch), with the trained-from-scratch weights of the step.
+
+By default the step runs the torch paths a CUDA step runs, also on a CPU: on CPU tensors the soft
+rasterizer, mask resampling and silhouette Chamfer are compiled loops (``usl.utils.compiled``) that
+read their inputs on the host, which only the CPU pays. ``--compiled`` counts the CPU's own step.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import statistics
 import time
 from pathlib import Path
@@ -25,6 +31,7 @@ from pathlib import Path
 import torch
 from train import bench_step  # scripts/bench/train.py: the same step and batches it times
 
+from usl.utils.compiled import torch_paths_only
 from usl.utils.op_count import count_ops, format_report
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -46,6 +53,11 @@ def main() -> None:
     p.add_argument("--top", type=int, default=15, help="source lines listed")
     p.add_argument("--cpu-steps", type=int, default=0, help="also time this many uncounted steps")
     p.add_argument("--predict", choices=("gt_boxes", "detections"), help="count inference instead of a step")
+    p.add_argument(
+        "--compiled",
+        action="store_true",
+        help="CPU: count with the compiled loops (default: the torch paths CUDA runs)",
+    )
     p.add_argument("overrides", nargs="*", help="config overrides key=value")
     args = p.parse_args()
     torch.set_num_threads(1)
@@ -53,7 +65,8 @@ def main() -> None:
     for iteration in range(args.warmup):
         step(batches[iteration % 2])
     frames = [sample.frame for sample in batches[args.warmup % 2]]
-    with count_ops(ROOT) as count:
+    paths = contextlib.nullcontext() if args.compiled else torch_paths_only()
+    with paths, count_ops(ROOT) as count:
         if args.predict:
             with torch.no_grad():
                 step.model.predict(frames, args.predict)
@@ -64,7 +77,8 @@ def main() -> None:
     print(
         f"config={args.config} images={cfg.train.batch_size} objects={objects} "
         f"views={cfg.data.num_views} data={'records' if args.data else 'synthetic'} "
-        f"counted={'predict ' + args.predict if args.predict else 'training step'}"
+        f"counted={'predict ' + args.predict if args.predict else 'training step'} "
+        f"paths={'compiled CPU loops' if args.compiled else 'torch (as on CUDA)'}"
     )
     print(format_report(count, args.top))
     if args.cpu_steps:

@@ -8,6 +8,9 @@ outputs preallocated, so compiled code never allocates.
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from contextlib import contextmanager
+
 import torch
 
 try:
@@ -22,6 +25,23 @@ def compiled(loop):
     return numba.njit(cache=True, nogil=True, error_model="numpy")(loop) if numba else loop
 
 
+_torch_paths_only = False
+
+
 def serves(tensor: torch.Tensor) -> bool:
-    """Whether compiled loops serve ``tensor``: numba imports and it is a CPU tensor."""
-    return numba is not None and tensor.device.type == "cpu"
+    """Whether compiled loops serve ``tensor``: numba imports, it is a CPU tensor, and no
+    :func:`torch_paths_only` block is open."""
+    return numba is not None and tensor.device.type == "cpu" and not _torch_paths_only
+
+
+@contextmanager
+def torch_paths_only() -> Iterator[None]:
+    """Within the block CPU tensors take the torch paths, as CUDA tensors always do: what
+    ``scripts/bench/count_ops.py`` counts by default, the ops and host syncs of a CUDA step, on a
+    machine without a GPU (a compiled loop reads its inputs on the host, which only the CPU pays)."""
+    global _torch_paths_only
+    previous, _torch_paths_only = _torch_paths_only, True
+    try:
+        yield
+    finally:
+        _torch_paths_only = previous
