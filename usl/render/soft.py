@@ -33,7 +33,7 @@ import torch
 import torch.nn.functional as F
 from torch.utils.checkpoint import checkpoint
 
-from usl.render import soft_cpu
+import usl.render.soft_cpu as soft_cpu
 from usl.render.screen import (
     DEFAULT_CHUNK_SIZE,
     DEFAULT_NEAR,
