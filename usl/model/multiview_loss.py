@@ -186,8 +186,8 @@ def _gather_pairs(
     )
     pair_rows: list[tuple[int, int, int, int]] = []  # per pair: object row, view row, sample, is input view
     first_row = 0
-    for index, (sample, verts) in enumerate(zip(samples, verts_cam.split(counts))):
-        num_objects, num_views, start = len(verts), len(sample.views), first_row
+    for index, (sample, num_objects) in enumerate(zip(samples, counts)):
+        num_views, start = len(sample.views), first_row
         first_row += num_objects
         if not num_objects:
             continue

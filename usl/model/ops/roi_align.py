@@ -329,6 +329,14 @@ def _channels_last(inputs: Sequence[Tensor]) -> Tensor:
     return rows[0] if len(rows) == 1 else torch.cat(rows)
 
 
+def _per_row_bmm(matrix: Tensor, rows: Tensor) -> Tensor:
+    """``matrix[:, None] @ rows``: (k, m, n) times each of the (k, r, n, C) rows -> (k, r, m, C), as
+    the one ``bmm`` ``torch.matmul``'s broadcasting makes of it, without its extra views."""
+    k, r, n, channels = rows.shape
+    expanded = matrix[:, None].expand(k, r, *matrix.shape[1:]).reshape(k * r, *matrix.shape[1:])
+    return torch.bmm(expanded, rows.reshape(k * r, n, channels)).view(k, r, matrix.shape[1], channels)
+
+
 class _RoIAlignFunction(torch.autograd.Function):
     @staticmethod
     def forward(ctx, chunks: list[_Chunk], out_shape: tuple[int, int, int], dtype: torch.dtype, *inputs: Tensor):
@@ -340,8 +348,8 @@ class _RoIAlignFunction(torch.autograd.Function):
             k, window_h, window_w = chunk.pixel.shape
             window = table[chunk.pixel].to(dtype)  # (k, wh, ww, C)
             # Two batched matmuls (rows, then columns): ~3x faster than the equivalent einsum on CPU.
-            row_pooled = torch.matmul(chunk.row_matrix, window.reshape(k, window_h, window_w * channels))
-            pooled[chunk.rois] = torch.matmul(chunk.col_matrix[:, None], row_pooled.view(k, out_h, window_w, channels))
+            row_pooled = torch.bmm(chunk.row_matrix, window.view(k, window_h, window_w * channels))
+            pooled[chunk.rois] = _per_row_bmm(chunk.col_matrix, row_pooled.view(k, out_h, window_w, channels))
         ctx.chunks = chunks
         ctx.input_shapes = [m.shape for m in inputs]
         ctx.input_dtype = inputs[0].dtype
@@ -360,8 +368,8 @@ class _RoIAlignFunction(torch.autograd.Function):
         grad_table = grad.new_zeros((total, channels))  # channels-last rows of all levels
         for chunk in ctx.chunks:
             k = chunk.pixel.shape[0]
-            by_column = torch.matmul(chunk.col_matrix.transpose(1, 2)[:, None], grad[chunk.rois])  # (k, out_h, ww, C)
-            window = torch.matmul(chunk.row_matrix.transpose(1, 2), by_column.reshape(k, by_column.shape[1], -1))
+            by_column = _per_row_bmm(chunk.col_matrix.transpose(1, 2), grad[chunk.rois])  # (k, out_h, ww, C)
+            window = torch.bmm(chunk.row_matrix.transpose(1, 2), by_column.view(k, by_column.shape[1], -1))
             grad_table.index_add_(0, chunk.pixel.reshape(-1), window.reshape(-1, channels))
         grads, start = [], 0
         for n, _, h, w in ctx.input_shapes:
