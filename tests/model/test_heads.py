@@ -8,6 +8,8 @@ import torch.nn.functional as F
 
 from tests.model.detection_oracles import roi_align_loop, subsample_labels_read_per_image
 from usl.utils.op_count import count_ops
+from usl.model.detector.box_head import FastRCNNOutputLayers
+from usl.model.detector.config import BoxHeadConfig
 from usl.model.ops import box_iou, stack_padded
 from usl.model.detector import (
     ImageList,
@@ -254,3 +256,34 @@ def test_rpn_nms_of_all_images_at_once_matches_one_image_at_a_time():
         assert torch.equal(new[image].proposal_boxes, image_boxes[kept])
         assert torch.equal(new[image].objectness_logits, image_scores[kept])
         assert new[image].image_size == size
+
+
+def test_box_losses_with_host_foreground_counts_equal_the_device_search_and_read_nothing():
+    """The RoI heads sample each image's foreground first and know the counts: the box losses
+    given them equal those that find the foreground rows with ``nonzero`` (values and gradients,
+    bit for bit), without a host sync."""
+    g = torch.Generator().manual_seed(0)
+    head = FastRCNNOutputLayers(16, 3, BoxHeadConfig())
+    proposals, counts = [], []
+    for n, fg in ((7, 3), (5, 0), (6, 6)):
+        boxes = torch.rand(n, 2, generator=g) * 50
+        boxes = torch.cat([boxes, boxes + 5 + torch.rand(n, 2, generator=g) * 20], 1)
+        classes = torch.cat([torch.randint(0, 3, (fg,), generator=g), torch.full((n - fg,), 3)])
+        proposals.append(
+            Instances(
+                (80, 80), proposal_boxes=boxes, gt_boxes=boxes + torch.randn(n, 4, generator=g), gt_classes=classes
+            )
+        )
+        counts.append(fg)
+    x = torch.randn(18, 16, generator=g)
+    results = []
+    for num_foreground in (None, counts):
+        head.zero_grad()
+        logits, deltas = head(x)
+        with count_ops() as count:
+            losses = head.losses(logits, deltas, proposals, num_foreground)
+        sum(losses.values()).backward()
+        results.append((losses, head.bbox_pred.weight.grad.clone(), count.total_syncs))
+    (device, device_grad, device_syncs), (host, host_grad, host_syncs) = results
+    assert all(torch.equal(device[k], host[k]) for k in device) and torch.equal(device_grad, host_grad)
+    assert device_syncs >= 1 and host_syncs == 0

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import itertools
+
 from typing import Sequence
 
 import torch
@@ -52,10 +54,18 @@ class FastRCNNOutputLayers(nn.Module):
     def forward(self, x: Tensor) -> tuple[Tensor, Tensor]:
         return self.cls_score(x), self.bbox_pred(x)
 
-    def losses(self, logits: Tensor, deltas: Tensor, proposals: Sequence[Instances]) -> dict[str, Tensor]:
+    def losses(
+        self,
+        logits: Tensor,
+        deltas: Tensor,
+        proposals: Sequence[Instances],
+        num_foreground: Sequence[int] | None = None,
+    ) -> dict[str, Tensor]:
         """Cross-entropy over sampled proposals and L1/smooth-L1 on foreground deltas of their class.
 
         Both are normalised by the number of sampled proposals (detectron2's choice).
+        ``num_foreground``: each image's foreground count when its foreground rows come first (as
+        the RoI heads sample them): the rows are then known without reading the device.
         """
         gt_classes = torch.cat([p.gt_classes for p in proposals])
         if gt_classes.numel() == 0:
@@ -63,7 +73,13 @@ class FastRCNNOutputLayers(nn.Module):
             return {"loss_cls": zero, "loss_box_reg": zero}
         proposal_boxes = torch.cat([p.proposal_boxes for p in proposals])
         gt_boxes = torch.cat([p.gt_boxes for p in proposals])
-        foreground = torch.nonzero(gt_classes < self.num_classes).squeeze(1)
+        if num_foreground is None:
+            foreground = torch.nonzero(gt_classes < self.num_classes).squeeze(1)
+        else:
+            starts = itertools.accumulate((len(p) for p in proposals[:-1]), initial=0)
+            foreground = torch.cat(
+                [torch.arange(start, start + n, device=gt_classes.device) for start, n in zip(starts, num_foreground)]
+            )
         predicted = deltas.view(len(deltas), self.num_classes, 4)[foreground, gt_classes[foreground]]
         target = self.box2box.get_deltas(proposal_boxes[foreground], gt_boxes[foreground])
         loss_box = F.smooth_l1_loss(predicted, target, beta=self.cfg.smooth_l1_beta, reduction="sum")

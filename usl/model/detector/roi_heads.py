@@ -85,7 +85,7 @@ class StandardROIHeads(nn.Module):
             if targets is None:
                 raise ValueError("ROI heads need targets in training mode")
             proposals, num_foreground = self.label_and_sample_proposals(proposals, targets)
-            losses = self.forward_box(features, proposals)
+            losses = self.forward_box(features, proposals, num_foreground)
             if self.mask_on:
                 # each image's foreground rows come first, so a slice selects them: no device read
                 foreground = [p[:n] for p, n in zip(proposals, num_foreground)]
@@ -143,12 +143,15 @@ class StandardROIHeads(nn.Module):
             num_foreground.append(len(positive))
         return sampled, num_foreground
 
-    def forward_box(self, features: Mapping[str, Tensor], proposals: list[Instances]):
-        """Training: box losses; eval: detections after score threshold, per-class NMS and top-k."""
+    def forward_box(
+        self, features: Mapping[str, Tensor], proposals: list[Instances], num_foreground: list[int] | None = None
+    ):
+        """Training: box losses (``num_foreground``: each image's foreground count, its rows first); eval:
+        detections after score threshold, per-class NMS and top-k."""
         pooled = self.box_pooler(features, [p.proposal_boxes for p in proposals])
         logits, deltas = self.box_predictor(self.box_head(pooled))
         if self.training:
-            return self.box_predictor.losses(logits, deltas, proposals)
+            return self.box_predictor.losses(logits, deltas, proposals, num_foreground)
         cfg = self.cfg
         return self.box_predictor.inference(
             logits, deltas, proposals, cfg.score_thresh_test, cfg.nms_thresh_test, cfg.detections_per_image
