@@ -50,6 +50,7 @@ evaluate_heldout() {  # DATA CHECKPOINT EVAL ROWS FIRST_ROWS PICTURES
   # first build only, as scoring every view is the bulk of the job's time), then the summary
   local data=$1 checkpoint=$2 eval=$3 rows=$4 first_rows=$5 pictures=$6 seed status=0 pids=()
   mkdir -p "$eval"
+  echo "evaluate_heldout: scoring builds ${HELDOUT_SEEDS[*]} side by side; progress in $eval/seed<k>.log"
   for seed in "${HELDOUT_SEEDS[@]}"; do  # side by side: they share the cores and end together
     local here=$rows shown=0
     if [[ $seed == "${HELDOUT_SEEDS[0]}" ]]; then
@@ -57,7 +58,7 @@ evaluate_heldout() {  # DATA CHECKPOINT EVAL ROWS FIRST_ROWS PICTURES
       shown=$pictures
     fi
     OMP_NUM_THREADS=1 python3 -m usl.cli.evaluate "$data/heldout/seed$seed" --split train --input-views all \
-      --checkpoint "$checkpoint" --rows "$here" --out "$eval/seed$seed" --quiet --pictures "$shown" \
+      --checkpoint "$checkpoint" --rows "$here" --out "$eval/seed$seed" --pictures "$shown" \
       >"$eval/seed$seed.log" 2>&1 &
     pids+=($!)
   done
