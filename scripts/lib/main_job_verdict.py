@@ -96,6 +96,12 @@ def verdict(builds: dict[int, dict], values: dict[str, dict[str, list[float]]]) 
     ok, lines = True, []
     for seed, report in builds.items():
         rows = {p["name"]: p["metrics"] for p in report["predictors"]}
+        missing = [name for name in (MODEL, *SPHERES) if name not in rows]
+        if missing:
+            raise SystemExit(
+                f"main_job_verdict: seed{seed}/metrics.json has no row for {', '.join(missing)} "
+                "(usl-eval --rows random,fixed,model)"
+            )
         for c in TABLE_COLUMNS:
             ours = rows[MODEL][c.metric]
             for sphere in SPHERES:

@@ -75,3 +75,9 @@ def test_one_build_behind_a_sphere_fails_the_claim(tmp_path, capsys, metric):
 def test_a_folder_without_reports_names_itself(tmp_path):
     with pytest.raises(SystemExit, match=str(tmp_path)):
         verdict.main(str(tmp_path))
+
+
+def test_a_build_without_the_model_row_is_named(tmp_path):
+    _write_builds(tmp_path, {k: v for k, v in ROWS.items() if k != "USL"}, first_only=None)
+    with pytest.raises(SystemExit, match="seed1/metrics.json has no row for USL"):
+        verdict.main(str(tmp_path))
