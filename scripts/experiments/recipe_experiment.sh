@@ -19,6 +19,10 @@ export PYOPENGL_PLATFORM=${PYOPENGL_PLATFORM:-egl}
 # this checkout's code (python -m, not the console scripts), whatever pip last installed
 export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}"
 NAME=${1:?usage: recipe_experiment.sh NAME [key=value ...]}; shift
+if [[ -n ${USL_EXP_EVAL_VIEWS:-} ]]; then  # the earlier protocol's switch: refuse it rather than ignore it
+  echo "recipe_experiment.sh: USL_EXP_EVAL_VIEWS is no longer read: every view of three held-out builds is scored; a finding that set it names the commit whose script reproduces it" >&2
+  exit 2
+fi
 ROOT=${USL_EXP_DIR:-runs/experiments}
 DATA=$ROOT/data
 RUN=$ROOT/$NAME
