@@ -22,7 +22,7 @@ from pathlib import Path
 from typing import Any, Sequence
 
 from table1_plan import ROWS, Row  # a sibling script: python puts this folder on sys.path
-from usl.evaluation.report import COLUMNS, Column
+from usl.evaluation.report import COLUMNS, Column, mean_std_cell
 
 TABLE_COLUMNS: list[Column] = COLUMNS["scene_shapes"]  # usl-eval's Table 1 columns: titles, scales, decimals
 _SEED = re.compile(r"^seed(\d+)$")
@@ -119,11 +119,7 @@ def summarize(out: Path) -> list[RowSummary]:
 
 
 def cell(summary: RowSummary, column: Column) -> str:
-    mean, std = summary.mean_std(column.metric)
-    if mean is None:
-        return "–"
-    text = f"{mean * column.scale:.{column.decimals}f}"
-    return text if std is None else f"{text} ± {std * column.scale:.{column.decimals}f}"
+    return mean_std_cell(summary.values(column.metric), column)
 
 
 def seeds_cell(summary: RowSummary) -> str:

@@ -21,7 +21,7 @@ import statistics
 import sys
 from pathlib import Path
 
-from usl.evaluation.report import COLUMNS
+from usl.evaluation.report import COLUMNS, mean_std_cell
 
 TABLE_COLUMNS = COLUMNS["scene_shapes"]  # Chamfer, F1, Mask IoU input, Mask IoU views: titles, scales, decimals
 LOWER_IS_BETTER = {"chamfer"}
@@ -64,12 +64,6 @@ def markdown(builds: dict[int, dict], values: dict[str, dict[str, list[float]]])
     views = sum(b["num_input_views"] for b in builds.values())
     titles = " | ".join(c.title for c in TABLE_COLUMNS)
 
-    def cell(metric_values: list[float], scale: float, decimals: int) -> str:
-        if not metric_values:
-            return "–"
-        mean, std = mean_std(metric_values)
-        return f"{mean * scale:.{decimals}f}" + ("" if std is None else f" ± {std * scale:.{decimals}f}")
-
     lines = [
         f"Held-out Scene-Shapes builds (seeds {seeds}): every input view of every scene, {views} input views;",
         "mean ± std over the builds (Builds: how many scored the row).",
@@ -78,13 +72,13 @@ def markdown(builds: dict[int, dict], values: dict[str, dict[str, list[float]]])
         "|:---|" + ":---:|" * (len(TABLE_COLUMNS) + 1),
     ]
     for name, row in values.items():
-        cells = " | ".join(cell(row[c.metric], c.scale, c.decimals) for c in TABLE_COLUMNS)
+        cells = " | ".join(mean_std_cell(row[c.metric], c) for c in TABLE_COLUMNS)
         lines.append(f"| {name} | {cells} | {max(len(v) for v in row.values())} |")
     lines += ["", "Every build:", "", f"| Model | Seed | {titles} |", "|:---|:---:|" + ":---:|" * len(TABLE_COLUMNS)]
     for seed, report in builds.items():
         for predictor in report["predictors"]:
             cells = " | ".join(
-                cell([v] if (v := predictor["metrics"].get(c.metric)) is not None else [], c.scale, c.decimals)
+                mean_std_cell([v] if (v := predictor["metrics"].get(c.metric)) is not None else [], c)
                 for c in TABLE_COLUMNS
             )
             lines.append(f"| {predictor['name']} | {seed} | {cells} |")

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import math
+import statistics
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Mapping, Sequence
@@ -58,6 +59,15 @@ def choose_layout(dataset_name: str, summaries: Sequence[PredictorSummary]) -> s
 
 def _cell(value: float | None, column: Column) -> str:
     return "–" if value is None else f"{value * column.scale:.{column.decimals}f}"
+
+
+def mean_std_cell(values: Sequence[float], column: Column) -> str:
+    """A column's cell for several runs or builds: the mean ± the sample std (ddof=1); one value
+    alone, "–" for none (tables over seeds and held-out builds print figures as usl-eval does)."""
+    if len(values) < 2:
+        return _cell(values[0] if values else None, column)
+    std = statistics.stdev(values) * column.scale
+    return f"{_cell(statistics.fmean(values), column)} ± {std:.{column.decimals}f}"
 
 
 def _markdown(header: list[str], rows: list[list[str]], align: list[str]) -> str:
