@@ -7,7 +7,8 @@ included; the nearest face wins, with ties going to the lower face index. Depth 
 planar camera-frame z of the surface point seen through the pixel centre, interpolated
 perspective-correctly for any projective ``K``. Faces with a vertex at or behind the near
 plane are culled, not clipped. Sparse like the soft rasterizer: only pixels inside each
-face's 2D box are visited, in chunks of bounded size.
+face's 2D box are visited, in chunks of bounded size; on the CPU in one compiled loop
+(:mod:`usl.render.hard_cpu`, the same result bit for bit).
 """
 
 from __future__ import annotations
@@ -16,9 +17,13 @@ from dataclasses import dataclass
 
 import torch
 
+import usl.render.face_tables as face_tables
+import usl.render.hard_cpu as hard_cpu
 from usl.render.screen import (
     DEFAULT_CHUNK_SIZE,
     DEFAULT_NEAR,
+    FaceBoxes,
+    ScreenFaces,
     check_packed_inputs,
     face_pixel_boxes,
     iter_face_pixels,
@@ -90,15 +95,41 @@ def rasterize_hard(
     if mesh_view.shape != (num_meshes,):
         raise ValueError(f"rasterize_hard: mesh_view must be ({num_meshes},), got {tuple(mesh_view.shape)}")
 
-    num_views, num_pixels = K.shape[0], height * width
+    num_views = K.shape[0]
     face_view = mesh_view[mesh_idx]
     screen = project_faces(verts, faces, face_view, K, near)
     boxes = face_pixel_boxes(screen, 0.0, height, width)
-    zbuf = torch.full((num_views * num_pixels,), torch.inf, dtype=verts.dtype, device=verts.device)
-    fbuf = torch.full((num_views * num_pixels,), -1, dtype=torch.long, device=verts.device)
+    if face_tables.available(screen.plane):
+        zbuf, fbuf = hard_cpu.zbuffer(screen, boxes, face_view, num_views, height, width)
+    else:
+        zbuf, fbuf = _zbuffer(screen, boxes, face_view, num_views, height, width, chunk_size)
+
+    # fbuf == -1 (background) picks the appended -1.
+    instance = torch.cat([mesh_idx, mesh_idx.new_full((1,), -1)])[fbuf].view(num_views, height, width)
+    depth_map = zbuf.view(num_views, height, width)
+    ids = torch.arange(num_meshes, device=verts.device)
+    masks = instance[mesh_view] == ids[:, None, None]
+    covered = instance.reshape(-1) >= 0
+    nearest = torch.full((num_meshes,), torch.inf, dtype=verts.dtype, device=verts.device)
+    nearest = nearest.scatter_reduce_(0, instance.reshape(-1)[covered], zbuf[covered], "amin")
+    nearest = torch.where(torch.isinf(nearest), torch.full_like(nearest, torch.nan), nearest)
+    if single_view:
+        instance, depth_map = instance[0], depth_map[0]
+    return HardRender(instance_map=instance, depth_map=depth_map, masks=masks, nearest_depth=nearest)
+
+
+def _zbuffer(
+    screen: ScreenFaces, boxes: FaceBoxes, face_view: Tensor, num_views: int, height: int, width: int, chunk_size: int
+) -> tuple[Tensor, Tensor]:
+    """The torch path of :func:`usl.render.hard_cpu.zbuffer` (any device): per chunk of pairs, the
+    smallest depth per pixel, then the lowest face index at that depth; a later chunk wins only
+    with a strictly smaller depth."""
+    num_pixels = num_views * height * width
+    zbuf = torch.full((num_pixels,), torch.inf, dtype=screen.plane.dtype, device=screen.plane.device)
+    fbuf = torch.full((num_pixels,), -1, dtype=torch.long, device=screen.plane.device)
     no_face = torch.iinfo(torch.long).max
     for face, col, row in iter_face_pixels(boxes, chunk_size):
-        px, py = pixel_centres(col, row, verts.dtype)
+        px, py = pixel_centres(col, row, screen.plane.dtype)
         bary = screen_barycentrics(px, py, screen.plane_of(face))
         inside = torch.nonzero((bary[0] >= 0) & (bary[1] >= 0) & (bary[2] >= 0)).squeeze(1)
         face = face.index_select(0, inside)
@@ -113,16 +144,4 @@ def rasterize_hard(
         closer = chunk_z < zbuf
         zbuf = torch.where(closer, chunk_z, zbuf)
         fbuf = torch.where(closer, chunk_f, fbuf)
-
-    # fbuf == -1 (background) picks the appended -1.
-    instance = torch.cat([mesh_idx, mesh_idx.new_full((1,), -1)])[fbuf].view(num_views, height, width)
-    depth_map = zbuf.view(num_views, height, width)
-    ids = torch.arange(num_meshes, device=verts.device)
-    masks = instance[mesh_view] == ids[:, None, None]
-    covered = instance.reshape(-1) >= 0
-    nearest = torch.full((num_meshes,), torch.inf, dtype=verts.dtype, device=verts.device)
-    nearest = nearest.scatter_reduce_(0, instance.reshape(-1)[covered], zbuf[covered], "amin")
-    nearest = torch.where(torch.isinf(nearest), torch.full_like(nearest, torch.nan), nearest)
-    if single_view:
-        instance, depth_map = instance[0], depth_map[0]
-    return HardRender(instance_map=instance, depth_map=depth_map, masks=masks, nearest_depth=nearest)
+    return zbuf, fbuf

@@ -27,16 +27,12 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from usl.render.face_tables import NUMPY_DTYPES, available, box_table, centres, face_table
 from usl.render.screen import ScreenFaces, blur_margin_pixels, face_pixel_boxes, ndc_scale
-from usl.utils.compiled import compiled, serves
+from usl.utils.compiled import compiled
 
 Tensor = torch.Tensor
-_NUMPY_DTYPES = {torch.float32: np.float32, torch.float64: np.float64}
-
-
-def available(table: Tensor) -> bool:
-    """Whether the compiled loops serve faces held in ``table`` (a CPU float32/float64 tensor)."""
-    return serves(table) and table.dtype in _NUMPY_DTYPES
+__all__ = ["LogTransparency", "Pairs", "available", "select_pairs"]
 
 
 @dataclass
@@ -65,21 +61,19 @@ def select_pairs(
 ) -> Pairs:
     """The torch path's ``_select_pairs``, the same pairs in the same order (``settings``: the
     :class:`~usl.render.soft.SoftRasterSettings`)."""
-    np_dtype = _NUMPY_DTYPES[screen.plane.dtype]
+    np_dtype = NUMPY_DTYPES[screen.plane.dtype]
     boxes = face_pixel_boxes(screen, blur_margin_pixels(settings.blur_radius, height, width), height, width)
-    faces = np.ascontiguousarray(torch.cat([screen.plane.detach(), screen.depths.detach()]).numpy().T)
-    ints = np.ascontiguousarray(torch.stack([face_window, boxes.x0, boxes.y0, boxes.nx, boxes.ny]).numpy().T)
+    faces, ints = face_table(screen), box_table(face_window, boxes)
     capacity = int(np.dot(ints[:, 3], ints[:, 4]))
     face, pixel = np.empty(capacity, dtype=np.int32), np.empty(capacity, dtype=np.int32)
     depth, dist = np.empty(capacity, dtype=np.float32), np.empty(capacity, dtype=np_dtype)
     share = np.empty(capacity, dtype=np.uint8)
     counts = np.zeros(num_windows * height * width, dtype=np.int32)
     constants = np.array([ndc_scale(height, width) ** 2, settings.blur_radius, 0.0, 1.0], dtype=np_dtype)
-    # pixel_centres' arithmetic: col.to(dtype) + 0.5
-    centres = np.arange(max(height, width)).astype(np_dtype) + np_dtype(0.5)
+    pixel_centres = centres(max(height, width), np_dtype)
     row, codes = np.empty((2, width), dtype=np_dtype), np.empty(width, dtype=np.int32)
     count = _select_loop(
-        faces, ints, centres, constants, height, width, face, pixel, depth, dist, share, counts, row, codes
+        faces, ints, pixel_centres, constants, height, width, face, pixel, depth, dist, share, counts, row, codes
     )
     k = settings.faces_per_pixel
     if k is not None and count:
@@ -98,7 +92,7 @@ def select_pairs(
             np.empty(k, dtype=np.int32),
             np.empty(k, dtype=np.int32),
         )
-    return Pairs(face[:count], pixel[:count], dist[:count], share[:count], faces, centres, height, width)
+    return Pairs(face[:count], pixel[:count], dist[:count], share[:count], faces, pixel_centres, height, width)
 
 
 class LogTransparency(torch.autograd.Function):
