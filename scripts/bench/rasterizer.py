@@ -6,7 +6,8 @@
 2. A Hypersim-like batch on --device: 50 objects x 5 views = 250 (object, view) windows at
    72x72 through ``render_dynamic`` (window choice, exact-area targets from 768x1024 true
    masks, sparse soft rasterizer, BCE backward), reported as object-views per second; the
-   rasterizer alone; and the z-buffer rasterizer producing the 5 views' true masks.
+   rasterizer alone; and the z-buffer rasterizer producing the 5 views' true masks (on the CPU
+   also its torch path, which CUDA runs, against the compiled loop: CPU-time ratio, same maps).
 
 Usage: python scripts/bench/rasterizer.py [--device cuda] [--repeats 5] [--threads N]
 (--threads 1 gives steadier CPU numbers on a shared machine.)
@@ -26,6 +27,7 @@ import torch.nn.functional as F
 from usl.geometry.cameras import transform_points
 from usl.geometry.icosphere import ico_sphere
 from usl.render import SoftRasterSettings, rasterize_hard, rasterize_soft, rasterize_soft_dense, render_dynamic
+from usl.utils.compiled import torch_paths_only
 
 RESOLUTION = 72
 HEIGHT, WIDTH = 768, 1024  # Hypersim frames
@@ -131,8 +133,8 @@ def hypersim_like_batch(device: torch.device, repeats: int, num_objects: int = 5
     mesh_view = torch.arange(num_views, device=device).repeat_interleave(num_objects)
     Ks = K.to(device).expand(num_pairs, 3, 3)
 
-    hard_t = timed(
-        lambda: rasterize_hard(
+    def hard_views():
+        return rasterize_hard(
             true_cam.reshape(-1, 3),
             packed_faces,
             face_pair,
@@ -140,19 +142,17 @@ def hypersim_like_batch(device: torch.device, repeats: int, num_objects: int = 5
             HEIGHT,
             WIDTH,
             mesh_view=mesh_view,
-        ),
-        device,
-        max(1, repeats // 2),
-    )
-    hard = rasterize_hard(
-        true_cam.reshape(-1, 3),
-        packed_faces,
-        face_pair,
-        K.to(device).expand(num_views, 3, 3),
-        HEIGHT,
-        WIDTH,
-        mesh_view=mesh_view,
-    )
+        )
+
+    hard_t = timed(hard_views, device, max(1, repeats // 2))
+    hard = hard_views()
+    if device.type == "cpu":  # the compiled loop against the torch path it replaces (what CUDA runs)
+        with torch_paths_only():
+            hard_torch_t = timed(hard_views, device, max(1, repeats // 2))
+            hard_torch = hard_views()
+        same = torch.equal(hard.instance_map, hard_torch.instance_map) and torch.equal(
+            hard.depth_map, hard_torch.depth_map
+        )
     true_masks = hard.masks
     visible = int((true_masks.flatten(1).any(1)).sum())
 
@@ -185,6 +185,11 @@ def hypersim_like_batch(device: torch.device, repeats: int, num_objects: int = 5
         f"({num_pairs / raster_t[1]:.1f} per cpu-second)"
     )
     print(f"  rasterize_hard, {num_views} full {HEIGHT}x{WIDTH} views, {num_pairs} meshes  {fmt(hard_t)}")
+    if device.type == "cpu":
+        print(
+            f"  rasterize_hard's torch path (CUDA's)                {fmt(hard_torch_t)} -> compiled loop "
+            f"{hard_torch_t[1] / hard_t[1]:.1f}x less CPU, same maps: {same}"
+        )
 
 
 def main() -> None:
