@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from usl.render.face_tables import NUMPY_DTYPES, available, box_table, centres, face_table
+from usl.render.face_tables import NUMPY_DTYPES, available, box_table, centres, face_row, face_table
 from usl.render.screen import ScreenFaces, blur_margin_pixels, face_pixel_boxes, ndc_scale
 from usl.utils.compiled import compiled
 
@@ -194,11 +194,9 @@ def _select_loop(
         nx, ny = ints[f, 3], ints[f, 4]
         if nx == 0 or ny == 0:
             continue
-        c = faces[f]
-        x0, y0, x1, y1, x2, y2 = c[0], c[1], c[2], c[3], c[4], c[5]
-        ex0, ey0, ex1, ey1, ex2, ey2 = c[6], c[7], c[8], c[9], c[10], c[11]
-        il0, il1, il2, inv_area = c[12], c[13], c[14], c[15]
-        w0, w1, w2, z0, z1, z2 = c[16], c[17], c[18], c[19], c[20], c[21]
+        x0, y0, x1, y1, x2, y2, ex0, ey0, ex1, ey1, ex2, ey2, il0, il1, il2, inv_area, w0, w1, w2, z0, z1, z2 = (
+            face_row(faces[f])
+        )
         base, col0, row0 = ints[f, 0] * height, ints[f, 1], ints[f, 2]
         for r in range(row0, row0 + ny):
             py = centres[r]
