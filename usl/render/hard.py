@@ -75,6 +75,8 @@ def rasterize_hard(
         K: (3, 3) for a single view, or (B, 3, 3) for B views.
         mesh_view: (M,) long view of each mesh; required when K is (B, 3, 3).
         num_meshes: M; defaults to ``mesh_idx.max() + 1`` (or the length of ``mesh_view``).
+        chunk_size: (face, pixel) pairs per chunk of the torch path (the compiled CPU loop takes
+            one pair at a time).
     """
     single_view = K.dim() == 2
     if single_view:
