@@ -138,7 +138,6 @@ def test_frozen_batch_norm_keeps_its_affine_map_until_a_buffer_changes():
     torch.testing.assert_close(frozen.double()(x.double()), bn.double()(x.double()))
 
 
-
 def test_cpu_features_are_channels_last_and_match_a_float64_nchw_oracle():
     """On the CPU the ResNet runs channels-last (faster oneDNN kernels). Its maps and input gradient
     (train-mode BatchNorm) agree with the same layers called in float64 on the NCHW input."""
