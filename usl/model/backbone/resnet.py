@@ -162,7 +162,7 @@ class ResNet(nn.Module):
 
         On the CPU the maps are channels-last (NHWC): oneDNN's convolutions, their backward and the
         stem's max-pool run faster in that layout (a ``tiny`` step's backbone ~15% less CPU), with
-        the same values to float rounding. CUDA keeps NCHW, which fp32 cuDNN convolutions prefer."""
+        the same values to float rounding. CUDA keeps NCHW: the layout was measured on the CPU only."""
         if x.device.type == "cpu":
             x = x.contiguous(memory_format=torch.channels_last)
         x = self.maxpool(self.relu(self.bn1(self.conv1(x))))
