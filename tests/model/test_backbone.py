@@ -136,3 +136,28 @@ def test_frozen_batch_norm_keeps_its_affine_map_until_a_buffer_changes():
     bn.running_var.data.fill_(4.0)
     torch.testing.assert_close(frozen(x), bn(x))
     torch.testing.assert_close(frozen.double()(x.double()), bn.double()(x.double()))
+
+
+def test_cpu_features_are_channels_last_and_match_a_float64_nchw_oracle():
+    """On the CPU the ResNet runs channels-last (faster oneDNN kernels). Its maps and input gradient
+    (train-mode BatchNorm) agree with the same layers called in float64 on the NCHW input."""
+    torch.manual_seed(0)
+    net = ResNet(depth=18, base_channels=16, norm="BN")
+    x = torch.randn(2, 3, 64, 96)
+
+    def loss_and_grad(features: dict, inputs: torch.Tensor) -> torch.Tensor:
+        return torch.autograd.grad(sum((f * f).mean() for f in features.values()), inputs)[0]
+
+    x32 = x.clone().requires_grad_()
+    features = net.features(x32)
+    assert all(f.is_contiguous(memory_format=torch.channels_last) for f in features.values())
+    grad = loss_and_grad(features, x32)
+    net64, x64 = net.double(), x.double().requires_grad_()
+    reference, h = {}, net64.maxpool(net64.relu(net64.bn1(net64.conv1(x64))))  # NCHW throughout
+    for index, stage in enumerate(("layer1", "layer2", "layer3", "layer4")):
+        h = reference[f"c{index + 2}"] = getattr(net64, stage)(h)
+    assert not reference["c2"].is_contiguous(memory_format=torch.channels_last)
+    grad64 = loss_and_grad(reference, x64)
+    for name, f in features.items():
+        torch.testing.assert_close(f.double(), reference[name], rtol=1e-4, atol=1e-4)
+    assert (grad.double() - grad64).norm() / grad64.norm() < 1e-4

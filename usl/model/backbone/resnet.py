@@ -158,7 +158,13 @@ class ResNet(nn.Module):
                 nn.init.zeros_(module.bias)
 
     def features(self, x: Tensor) -> dict[str, Tensor]:
-        """C2..C5 feature maps (strides 4, 8, 16, 32)."""
+        """C2..C5 feature maps (strides 4, 8, 16, 32).
+
+        On the CPU the maps are channels-last (NHWC): oneDNN's convolutions, their backward and the
+        stem's max-pool run faster in that layout (a ``tiny`` step's backbone ~15% less CPU), with
+        the same values to float rounding. CUDA keeps NCHW: the layout was measured on the CPU only."""
+        if x.device.type == "cpu":
+            x = x.contiguous(memory_format=torch.channels_last)
         x = self.maxpool(self.relu(self.bn1(self.conv1(x))))
         outputs = {}
         for index, stage in enumerate(STAGES):

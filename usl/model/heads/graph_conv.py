@@ -40,4 +40,6 @@ class GraphConv(nn.Module):
     def forward(self, x: Tensor, edges: Tensor) -> Tensor:
         own, message = self.w0(x), self.w1(x)
         a, b = edges[:, 0], edges[:, 1]
-        return own.index_add(1, a, message[:, b]).index_add(1, b, message[:, a])
+        # index_select, not message[:, b]: the same gather, but its backward is an index_add where
+        # advanced indexing's is an accumulating index_put, ~3x slower on CPU (same sums, same order)
+        return own.index_add(1, a, message.index_select(1, b)).index_add(1, b, message.index_select(1, a))
