@@ -14,7 +14,9 @@ channel (not ``out_h * out_w * 4 * grid^2`` gathers) and handles the adaptive
 sampling grid (a different grid per RoI) without padding samples.
 
 RoIs are processed in chunks of similar window size so memory stays bounded; there is
-no Python loop over RoIs. The backward pass is written out (the transposed matmuls and
+no Python loop over RoIs. The RoIs are laid out in chunk order once, so a chunk's matrices
+and output are strided views and its work is two ``bmm`` calls (a few ops per chunk, which
+is what a CUDA step pays for). The backward pass is written out (the transposed matmuls and
 one ``index_add_`` into a single gradient buffer): autograd through the gathers would
 allocate a full-size input gradient per chunk.
 """
