@@ -23,8 +23,8 @@ allocate a full-size input gradient per chunk.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from collections.abc import Iterator
+from dataclasses import dataclass
 from typing import Sequence, Union
 
 import numpy as np
