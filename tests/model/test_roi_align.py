@@ -47,6 +47,21 @@ def test_adaptive_grid_with_large_and_small_boxes_and_tiny_chunks():
         torch.testing.assert_close(actual, expected, rtol=0, atol=1e-12)
 
 
+def test_gradients_of_many_chunks_match_the_loop_reference():
+    """Chunks are strided views of plan-ordered matrices and of the output: with one RoI per chunk,
+    a few chunks, or one, the input gradient is the per-sample loop's (through autograd)."""
+    generator = torch.Generator().manual_seed(7)
+    features = torch.randn(2, 3, 20, 24, generator=generator, dtype=torch.float64)
+    rois = random_rois(generator, 14, 2, 24)
+    weight = torch.randn(14, 3, 3, 4, generator=generator, dtype=torch.float64)
+    leaf = features.clone().requires_grad_(True)
+    (roi_align_loop(leaf, rois, (3, 4), 1.0, -1, True) * weight).sum().backward()
+    for budget in (1, 3000, 10**9):  # 14, 4 and 1 chunks
+        mine = features.clone().requires_grad_(True)
+        (roi_align(mine, rois, (3, 4), 1.0, -1, True, max_chunk_elements=budget) * weight).sum().backward()
+        torch.testing.assert_close(mine.grad, leaf.grad, rtol=0, atol=1e-12)
+
+
 def test_list_of_boxes_equals_rois_tensor_and_module():
     generator = torch.Generator().manual_seed(4)
     features = torch.randn(2, 4, 8, 8, generator=generator)

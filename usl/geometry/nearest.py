@@ -70,10 +70,11 @@ def nearest_neighbors(
         # Centre both sets on y's mean: the matmul form of cdist loses precision with |x|^2.
         centre = y.detach().mean(dim=1, keepdim=True)
         xd, yd = x.detach() - centre, y.detach() - centre
+        invalid = None if y_valid is None else ~y_valid.unsqueeze(1)  # once, not per chunk
         for start in range(0, num_x, chunk):
             d = torch.cdist(xd[:, start : start + chunk], yd, compute_mode="use_mm_for_euclid_dist")
-            if y_valid is not None:
-                d = d.masked_fill(~y_valid.unsqueeze(1), float("inf"))
+            if invalid is not None:
+                d = d.masked_fill(invalid, float("inf"))
             idx_chunks.append(d.argmin(dim=2))
     idx = torch.cat(idx_chunks, dim=1)
     return _sq_dist_to(x, y, idx), idx
