@@ -6,7 +6,7 @@
 #   mean ± std over the builds, JSON, pictures).
 # Re-running resumes every stage (the builds keep finished shards, training continues from its
 # last checkpoint). Recipe: $USL_MAIN_CONFIG (default tiny; tiny_long trains 8,000 iterations,
-# half an hour or more of a 2-core CPU). Output folder: $USL_MAIN_OUT (default runs/main for
+# about 25 minutes or more of a 2-core CPU). Output folder: $USL_MAIN_OUT (default runs/main for
 # tiny, runs/main_RECIPE for another, so that no run resumes under another recipe's name).
 set -euo pipefail
 cd "$(dirname "$0")/.."
