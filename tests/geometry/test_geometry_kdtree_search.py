@@ -4,17 +4,13 @@ point, of equidistant ones the lowest index, for near, far-apart and tiny sets."
 import numpy as np
 import pytest
 import torch
-from scipy.spatial import cKDTree
 
 from usl.geometry.kdtree_search import leaf_ranges, nearest_in_tree
+from usl.geometry.nearest import _kdtree as tree
 from usl.geometry.nearest import KDTREE_LEAF_SIZE, kdtree_indices
 from usl.utils import compiled
 
 pytestmark = pytest.mark.skipif(compiled.numba is None, reason="numba is not installed")
-
-
-def tree(points):
-    return cKDTree(points, leafsize=KDTREE_LEAF_SIZE, compact_nodes=False, balanced_tree=False)
 
 
 def brute_force(queries, candidates):

@@ -117,6 +117,9 @@ def test_exact_ties_between_edge_distances_share_the_gradient_as_torch_minimum_d
     faces, window = torch.tensor([[0, 1, 2]]), torch.tensor([0])
     settings = SoftRasterSettings(sigma=1e-2, blur_radius=0.2, faces_per_pixel=None)
     screen = project_faces(verts, faces, window, K, settings.near)
+    shares = soft_cpu.select_pairs(screen, window, 1, 16, 16, settings).share
+    edges_share = (shares[:, None] >> np.array([0, 2, 4], dtype=np.uint8)) & 3
+    assert (edges_share == 2).any(), "the scene no longer has a pixel exactly as far from two edges"
     grads = []
     for use_compiled in (True, False):
         with monkeypatch.context() as patch:

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import pyarrow as pa
 
-from .schema import SCHEMA_VERSION, table_schema
+from .schema import KNOWN_VERSIONS, SCHEMA_VERSION, table_schema
 
 RENAMED_INSTANCE_FIELDS = {"bbox": "box_xyxy"}
 # Frames fields that go from encoded bytes to Hugging Face's Image struct in the step from version v.
@@ -57,7 +57,7 @@ def upgrade_table(table: pa.Table, name: str, version: int) -> pa.Table:
 
     Works on any subset of columns; a table already in the current schema is returned as is.
     """
-    if version not in range(1, SCHEMA_VERSION + 1):
+    if version not in KNOWN_VERSIONS:
         raise ValueError(f"no upgrade from record schema version {version}")
     for step in range(version, SCHEMA_VERSION):
         table = _step(table, name, step)
