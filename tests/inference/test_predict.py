@@ -236,3 +236,19 @@ def test_glb_camera_keeps_the_full_K_and_fov_auto_warns_without_exif(image_path,
 def _node_materials(tree, node):
     primitives = tree["meshes"][node["mesh"]]["primitives"] if "mesh" in node else []
     return [tree["materials"][p["material"]] for p in primitives if "material" in p]
+
+
+def test_glb_buffer_views_are_marked_as_vertex_data_or_indices(image_path, tmp_path):
+    """glTF 2.0's bufferView.target: 34962 (ARRAY_BUFFER) for the views vertex attributes read,
+    34963 (ELEMENT_ARRAY_BUFFER) for the views indices read; trimesh writes neither (the Khronos
+    validator's hint, checked where it is installed in test_mesh_consumers.py)."""
+    predict_images(fake_detector, [image_path], tmp_path, CATEGORIES, fov_deg=60.0)
+    glb = (tmp_path / "room.glb").read_bytes()
+    tree = json.loads(glb[20 : 20 + int.from_bytes(glb[12:16], "little")])
+    views = tree["bufferViews"]
+    primitives = [p for mesh in tree["meshes"] for p in mesh["primitives"]]
+    attribute_views = {tree["accessors"][a]["bufferView"] for p in primitives for a in p["attributes"].values()}
+    index_views = {tree["accessors"][p["indices"]]["bufferView"] for p in primitives if "indices" in p}
+    assert len(primitives) >= 3 and attribute_views and index_views and not attribute_views & index_views
+    assert all(views[v].get("target") == 34962 for v in attribute_views)
+    assert all(views[v].get("target") == 34963 for v in index_views)
