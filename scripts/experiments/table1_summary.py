@@ -15,14 +15,13 @@ from __future__ import annotations
 import argparse
 import json
 import re
-import statistics
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
 
 from table1_plan import ROWS, Row  # a sibling script: python puts this folder on sys.path
-from usl.evaluation.report import COLUMNS, Column, mean_std_cell
+from usl.evaluation.report import COLUMNS, Column, mean_std, mean_std_cell
 
 TABLE_COLUMNS: list[Column] = COLUMNS["scene_shapes"]  # usl-eval's Table 1 columns: titles, scales, decimals
 _SEED = re.compile(r"^seed(\d+)$")
@@ -48,10 +47,7 @@ class RowSummary:
 
     def mean_std(self, metric: str) -> tuple[float | None, float | None]:
         """Mean and sample std (ddof=1; None for fewer than two values)."""
-        values = self.values(metric)
-        if not values:
-            return None, None
-        return statistics.fmean(values), statistics.stdev(values) if len(values) > 1 else None
+        return mean_std(self.values(metric))
 
 
 def predictor_metrics(metrics_json: Path, name: str | None = None) -> dict[str, float | None]:

@@ -21,7 +21,7 @@ import statistics
 import sys
 from pathlib import Path
 
-from usl.evaluation.report import COLUMNS, mean_std_cell
+from usl.evaluation.report import COLUMNS, mean_std, mean_std_cell
 
 TABLE_COLUMNS = COLUMNS["scene_shapes"]  # Chamfer, F1, Mask IoU input, Mask IoU views: titles, scales, decimals
 LOWER_IS_BETTER = {"chamfer"}
@@ -53,10 +53,6 @@ def row_values(builds: dict[int, dict]) -> dict[str, dict[str, list[float]]]:
                 if predictor["metrics"].get(c.metric) is not None:
                     row[c.metric].append(predictor["metrics"][c.metric])
     return values
-
-
-def mean_std(values: list[float]) -> tuple[float, float | None]:
-    return statistics.fmean(values), statistics.stdev(values) if len(values) > 1 else None
 
 
 def markdown(builds: dict[int, dict], values: dict[str, dict[str, list[float]]]) -> str:

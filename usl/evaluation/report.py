@@ -61,13 +61,17 @@ def _cell(value: float | None, column: Column) -> str:
     return "–" if value is None else f"{value * column.scale:.{column.decimals}f}"
 
 
+def mean_std(values: Sequence[float]) -> tuple[float | None, float | None]:
+    """Mean and sample std (ddof=1) of figures over runs or builds; None where there are too few."""
+    mean = statistics.fmean(values) if values else None
+    return mean, statistics.stdev(values) if len(values) > 1 else None
+
+
 def mean_std_cell(values: Sequence[float], column: Column) -> str:
-    """A column's cell for several runs or builds: the mean ± the sample std (ddof=1); one value
-    alone, "–" for none (tables over seeds and held-out builds print figures as usl-eval does)."""
-    if len(values) < 2:
-        return _cell(values[0] if values else None, column)
-    std = statistics.stdev(values) * column.scale
-    return f"{_cell(statistics.fmean(values), column)} ± {std:.{column.decimals}f}"
+    """A column's cell for several runs or builds: the mean ± the sample std; one value alone, "–"
+    for none (tables over seeds and held-out builds print figures as usl-eval does)."""
+    mean, std = mean_std(values)
+    return _cell(mean, column) if std is None else f"{_cell(mean, column)} ± {std * column.scale:.{column.decimals}f}"
 
 
 def _markdown(header: list[str], rows: list[list[str]], align: list[str]) -> str:
