@@ -136,6 +136,12 @@ def test_frozen_batch_norm_keeps_its_affine_map_until_a_buffer_changes():
     bn.running_var.data.fill_(4.0)
     torch.testing.assert_close(frozen(x), bn(x))
     torch.testing.assert_close(frozen.double()(x.double()), bn.double()(x.double()))
+    frozen.eps = bn.eps = 1e-2
+    torch.testing.assert_close(frozen(x.double()), bn(x.double()))
+    with torch.no_grad():  # a buffer written in place
+        frozen.bias.add_(1.0)
+        bn.bias.add_(1.0)
+    torch.testing.assert_close(frozen(x.double()), bn(x.double()))
 
 
 def test_cpu_features_are_channels_last_and_match_a_float64_nchw_oracle():

@@ -34,16 +34,21 @@ class FrozenBatchNorm2d(nn.Module):
 
     def _scale_and_shift(self, dtype: torch.dtype) -> tuple[Tensor, Tensor]:
         """The affine map (1, C, 1, 1) in ``dtype``, computed again only when a buffer was replaced
-        (``.to()``) or written (``load_state_dict``): 11 ops a layer saved on every step. Maps made
-        under ``torch.inference_mode`` are kept apart (autograd cannot save them)."""
+        (``.to()``, which drops the map, since a new buffer may reuse a freed one's address), written
+        in place (its version counter), or ``eps`` changed: 11 ops a layer saved on every step. Maps
+        made under ``torch.inference_mode`` are kept apart (autograd cannot save them)."""
         buffers = (self.weight, self.bias, self.running_mean, self.running_var)
-        key = (dtype, torch.is_inference_mode_enabled(), *((b.data_ptr(), b._version, b.device) for b in buffers))
+        key = (dtype, self.eps, torch.is_inference_mode_enabled(), *((b.data_ptr(), b._version) for b in buffers))
         if self._affine is None or self._affine[0] != key:
             with torch.no_grad():
                 scale = self.weight * torch.rsqrt(self.running_var + self.eps)
                 shift = self.bias - self.running_mean * scale
                 self._affine = (key, scale.to(dtype)[None, :, None, None], shift.to(dtype)[None, :, None, None])
         return self._affine[1], self._affine[2]
+
+    def _apply(self, fn, recurse=True):
+        self._affine = None
+        return super()._apply(fn, recurse)
 
     def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
         state_dict.pop(prefix + "num_batches_tracked", None)
