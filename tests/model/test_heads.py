@@ -10,7 +10,7 @@ from tests.model.detection_oracles import roi_align_loop, subsample_labels_read_
 from usl.utils.op_count import count_ops
 from usl.model.detector.box_head import FastRCNNOutputLayers
 from usl.model.detector.config import BoxHeadConfig
-from usl.model.ops import box_iou, stack_padded
+from usl.model.ops import box_iou, padded_match_quality, stack_padded
 from usl.model.detector import (
     ImageList,
     Instances,
@@ -68,7 +68,8 @@ def test_matcher_bands_and_low_quality_matches():
 
 @pytest.mark.parametrize("low_quality", [False, True])
 def test_matching_a_padded_batch_of_images_equals_matching_image_by_image(low_quality):
-    """What the RPN and the RoI heads now do: every image's ground truth padded, rows that match nothing."""
+    """padded_match_quality (the RPN's and the RoI heads' matching): every image's ground truth padded
+    with rows that match nothing, against each image matched alone."""
     g = torch.Generator().manual_seed(2)
 
     def boxes(n):
@@ -79,9 +80,8 @@ def test_matching_a_padded_batch_of_images_equals_matching_image_by_image(low_qu
     predictions = [boxes(40), boxes(7), boxes(25), boxes(60)]
     predictions[2][:3] = gt[2]  # exact matches, and ties for the low-quality rule
     matcher = Matcher([0.3, 0.7], [0, -1, 1], allow_low_quality_matches=low_quality)
-    padded_gt, real = stack_padded(gt)
-    assert padded_gt.shape == (4, 5, 4) and real.sum(1).tolist() == [3, 0, 1, 5]
-    quality = torch.where(real[..., None], box_iou(padded_gt, stack_padded(predictions)[0]), -1.0)
+    padded_gt, quality = padded_match_quality(gt, stack_padded(predictions)[0])
+    assert padded_gt.shape == (4, 5, 4) and quality.shape == (4, 5, 60)
     matches, labels = matcher(quality)
     for image, (t, p) in enumerate(zip(gt, predictions)):
         expected_matches, expected_labels = matcher(box_iou(t, p))

@@ -14,7 +14,7 @@ import torch
 from torch import nn
 
 from ..backbone import Registry, ShapeSpec
-from ..ops import box_iou, stack_padded
+from ..ops import padded_match_quality, stack_padded
 from .box_head import FastRCNNFCHead, FastRCNNOutputLayers
 from .config import ROIHeadsConfig
 from .mask_head import (
@@ -112,8 +112,7 @@ class StandardROIHeads(nn.Module):
             for p, t in zip(proposals, targets)
         ]
         # every image matched at once: ground truth and candidates padded (padded gt rows match nothing)
-        gt_boxes, real = stack_padded([t.gt_boxes for t in targets])
-        quality = torch.where(real[..., None], box_iou(gt_boxes, stack_padded(candidates)[0]), -1.0)
+        _, quality = padded_match_quality([t.gt_boxes for t in targets], stack_padded(candidates)[0])
         all_matches, all_labels = self.matcher(quality)
         matched = [(m[: len(boxes)], lab[: len(boxes)]) for m, lab, boxes in zip(all_matches, all_labels, candidates)]
         counts = label_counts([labels for _, labels in matched])  # one host read for the batch's draws

@@ -9,7 +9,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from ..backbone import ShapeSpec
-from ..ops import AnchorGenerator, Box2BoxTransform, batched_nms, box_iou, nonempty_boxes, stack_padded
+from ..ops import AnchorGenerator, Box2BoxTransform, batched_nms, nonempty_boxes, padded_match_quality
 from .config import RPNConfig
 from .matcher import IGNORE, Matcher, subsample_labels_dense
 from .structures import ImageList, Instances
@@ -83,8 +83,7 @@ class RPN(nn.Module):
     def label_anchors(self, anchors: Tensor, targets: list[Instances]) -> tuple[Tensor, Tensor]:
         """Sampled anchor labels (N, A) in {-1, 0, 1} and matched gt boxes (N, A, 4), every image's
         ground truth matched at once (padded with rows that match nothing)."""
-        gt_boxes, real = stack_padded([target.gt_boxes for target in targets])  # (N, G, 4), (N, G)
-        quality = torch.where(real[..., None], box_iou(gt_boxes, anchors[None]), -1.0)
+        gt_boxes, quality = padded_match_quality([target.gt_boxes for target in targets], anchors[None])
         matches, labels = self.matcher(quality)
         if gt_boxes.shape[1]:
             matched_boxes = torch.gather(gt_boxes, 1, matches[..., None].expand(-1, -1, 4))

@@ -10,6 +10,7 @@ from .boxes import (
     clip_boxes,
     nonempty_boxes,
     pairwise_intersection,
+    padded_match_quality,
     stack_padded,
 )
 from .nms import batched_nms, nms
@@ -32,5 +33,6 @@ __all__ = [
     "pairwise_intersection",
     "roi_align",
     "roi_align_levels",
+    "padded_match_quality",
     "stack_padded",
 ]

@@ -53,6 +53,15 @@ def stack_padded(boxes: Sequence[Tensor]) -> tuple[Tensor, Tensor]:
     return padded, torch.arange(longest, device=padded.device) < lengths[:, None]
 
 
+def padded_match_quality(gt_boxes: Sequence[Tensor], boxes: Tensor) -> tuple[Tensor, Tensor]:
+    """Every image's ground truth against its ``boxes`` at once: the padded ground truth ``(N, G, 4)``
+    and the IoUs ``(N, G, B)`` a ``Matcher`` reads, with -1 in the padded rows, below every
+    threshold and never a best match, so each image matches as it would alone. ``boxes``: ``(N, B, 4)``,
+    or ``(1, B, 4)`` shared by all images (anchors)."""
+    padded, real = stack_padded(gt_boxes)
+    return padded, torch.where(real[..., None], box_iou(padded, boxes), -1.0)
+
+
 def clip_boxes(boxes: Tensor, image_size: tuple[int, int]) -> Tensor:
     """Clip ``(..., 4)`` boxes to an image of ``(height, width)``."""
     height, width = image_size
