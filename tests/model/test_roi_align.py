@@ -1,3 +1,4 @@
+import importlib
 import itertools
 
 import numpy as np
@@ -47,7 +48,7 @@ def test_adaptive_grid_with_large_and_small_boxes_and_tiny_chunks():
         torch.testing.assert_close(actual, expected, rtol=0, atol=1e-12)
 
 
-def test_gradients_of_many_chunks_match_the_loop_reference():
+def test_gradients_of_many_chunks_match_the_loop_reference(monkeypatch):
     """Chunks are strided views of plan-ordered matrices and of the output: with one RoI per chunk,
     a few chunks, or one, the input gradient is the per-sample loop's (through autograd)."""
     generator = torch.Generator().manual_seed(7)
@@ -56,10 +57,14 @@ def test_gradients_of_many_chunks_match_the_loop_reference():
     weight = torch.randn(14, 3, 3, 4, generator=generator, dtype=torch.float64)
     leaf = features.clone().requires_grad_(True)
     (roi_align_loop(leaf, rois, (3, 4), 1.0, -1, True) * weight).sum().backward()
+    module = importlib.import_module("usl.model.ops.roi_align")  # the module, not the function of that name
+    chunks, plan_chunks = [], module._plan_chunks
+    monkeypatch.setattr(module, "_plan_chunks", lambda *args: chunks.append(len(plan := plan_chunks(*args))) or plan)
     for budget in (1, 3000, 10**9):  # 14, 4 and 1 chunks
         mine = features.clone().requires_grad_(True)
         (roi_align(mine, rois, (3, 4), 1.0, -1, True, max_chunk_elements=budget) * weight).sum().backward()
         torch.testing.assert_close(mine.grad, leaf.grad, rtol=0, atol=1e-12)
+    assert chunks == [14, 4, 1]
 
 
 def test_list_of_boxes_equals_rois_tensor_and_module():
