@@ -149,7 +149,7 @@ def test_the_model_averages_each_regularizer_per_image_then_over_the_batch_and_s
 
 
 def shape_regularizers_per_image(verts_cube, offsets, template, counts, need):
-    """The former ``shape_regularizers``: one Meshes and one term per image, summed image by image."""
+    """Per-image reference of ``shape_regularizers``: one Meshes and one term per image, summed image by image."""
     zero = verts_cube.sum() * 0.0
     result = {name: (zero.clone() if need.get(name) else None) for name in ("edge", "offset_l2", "laplacian", "normal")}
     starts = [0, *np.cumsum(counts).tolist()]

@@ -99,19 +99,19 @@ def test_subsample_labels_respects_budget_and_fraction():
     assert len(positive) == 1 and len(negative) == 2
 
 
-def test_subsampling_with_the_batch_counts_read_once_draws_as_the_former_per_image_reads():
+def test_subsampling_with_the_batch_counts_read_once_draws_as_per_image_reads():
     g = torch.Generator().manual_seed(1)
     images = [torch.randint(-1, 2, (n,), generator=g) for n in (0, 3, 40, 300)] + [torch.full((50,), 0)]
     counts = label_counts(images)
     assert counts == [(int((x == 1).sum()), int((x == 0).sum())) for x in images]
     for budget, fraction in ((16, 0.25), (512, 0.25), (8, 1.0)):
         torch.manual_seed(3)
-        former = [subsample_labels_read_per_image(x, budget, fraction) for x in images]
+        per_image = [subsample_labels_read_per_image(x, budget, fraction) for x in images]
         torch.manual_seed(3)
         with count_ops() as reads:
             drawn = [subsample_labels(x, budget, fraction, c) for x, c in zip(images, counts)]
         assert reads.total_syncs == 0, reads.syncs
-        for (positive, negative), (old_positive, old_negative) in zip(drawn, former):
+        for (positive, negative), (old_positive, old_negative) in zip(drawn, per_image):
             assert torch.equal(positive, old_positive) and torch.equal(negative, old_negative)
 
 
@@ -194,7 +194,7 @@ def test_image_list_pads_to_divisibility():
 
 def test_rpn_losses_weighted_over_all_anchors_match_the_sampled_anchors_alone(monkeypatch):
     """The RPN's losses sum over every anchor weighted by its label; the oracle indexes the
-    sampled anchors out first (the former implementation), for values and gradients."""
+    sampled anchors out first (a reference implementation), for values and gradients."""
     from usl.model.backbone import ShapeSpec
     from usl.model.detector.config import DetectorConfig
     from usl.model.detector.rpn import RPN

@@ -1,5 +1,5 @@
 """RoIMap samples every object's vertices from its own image at once; the oracle is
-``F.grid_sample`` object by object (the former per-image implementation's sampling)."""
+``F.grid_sample`` object by object (a per-image reference of the sampling)."""
 
 import torch
 import torch.nn.functional as F
@@ -45,7 +45,7 @@ def test_batched_roimap_matches_grid_sample_in_values_and_gradients():
 
 
 def four_tap_oracle(feature_map, image, xy):
-    """The former ``_sample_bilinear``: one gather and one weighted add per tap."""
+    """Tap-by-tap reference of ``_sample_bilinear``: one gather and one weighted add per tap."""
     height, width = feature_map.shape[-2:]
     corner = xy.floor()
     frac = xy - corner

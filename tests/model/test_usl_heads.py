@@ -30,15 +30,15 @@ def test_graph_conv_matches_dense_adjacency():
 
 
 def test_graph_conv_equals_the_advanced_indexing_form_bit_for_bit():
-    """GraphConv gathers with index_select (its backward an index_add); the former gather,
-    ``message[:, b]`` (backward: an accumulating index_put), adds the same terms in the same order,
+    """GraphConv gathers with index_select (its backward an index_add); the advanced-indexing
+    gather ``message[:, b]`` (backward: an accumulating index_put), adds the same terms in the same order,
     so values and gradients are equal, not merely close."""
     torch.manual_seed(0)
     verts, faces = ico_sphere(2)
     edges = unique_edges(faces)
     conv = GraphConv(67, 64, "kaiming")
 
-    def former(x: torch.Tensor) -> torch.Tensor:
+    def advanced_indexing(x: torch.Tensor) -> torch.Tensor:
         own, message = conv.w0(x), conv.w1(x)
         a, b = edges[:, 0], edges[:, 1]
         return own.index_add(1, a, message[:, b]).index_add(1, b, message[:, a])
@@ -46,7 +46,7 @@ def test_graph_conv_equals_the_advanced_indexing_form_bit_for_bit():
     x = torch.randn(8, len(verts), 67, requires_grad=True)
     weight = torch.randn(8, len(verts), 64)
     results = []
-    for forward in (lambda x: conv(x, edges), former):
+    for forward in (lambda x: conv(x, edges), advanced_indexing):
         y = forward(x)
         results.append([y, *torch.autograd.grad((y * weight).sum(), [x, *conv.parameters()])])
     assert all(torch.equal(new, old) for new, old in zip(*results))
