@@ -9,6 +9,7 @@ from usl.losses.regularizers import (
     mesh_edge_loss,
     normal_consistency,
     offset_l2_loss,
+    offset_l2_per_mesh,
 )
 from usl.losses.silhouette import (
     SilhouetteBCE,
@@ -35,6 +36,7 @@ __all__ = [
     "normal_consistency",
     "mesh_edge_loss",
     "offset_l2_loss",
+    "offset_l2_per_mesh",
     "sample_mask_points",
     "silhouette_bce_loss",
     "silhouette_chamfer_loss",

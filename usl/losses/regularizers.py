@@ -17,7 +17,7 @@ def _per_mesh(values: Tensor, mesh_idx: Tensor, num_meshes: int) -> Tensor:
     return sums / counts
 
 
-def _mean_per_mesh(per_mesh: Tensor) -> Tensor:
+def _mean_over_meshes(per_mesh: Tensor) -> Tensor:
     """The mean over meshes; an empty batch gives a zero that is still connected to the graph."""
     return per_mesh.sum() * 0.0 if per_mesh.numel() == 0 else per_mesh.mean()
 
@@ -36,7 +36,7 @@ def mesh_edge_loss(meshes: Meshes) -> Tensor:
     Uses the unique undirected edges (``Meshes.edges_packed``), like PyTorch3D's
     ``mesh_edge_loss`` with target length 0.
     """
-    return _mean_per_mesh(edge_length_per_mesh(meshes))
+    return _mean_over_meshes(edge_length_per_mesh(meshes))
 
 
 def offset_l2_loss(offsets: Tensor) -> Tensor:
@@ -48,7 +48,12 @@ def offset_l2_loss(offsets: Tensor) -> Tensor:
     """
     if offsets.numel() == 0:
         return offsets.sum() * 0.0
-    return 0.5 * offsets.pow(2).sum(dim=-1).mean()
+    return offset_l2_per_mesh(offsets).mean()
+
+
+def offset_l2_per_mesh(offsets: Tensor) -> Tensor:
+    """½‖dV‖² averaged over each mesh's vertices: (..., V, 3) offsets give (...,)."""
+    return 0.5 * offsets.pow(2).sum(dim=-1).mean(dim=-1)
 
 
 def laplacian_smoothing_loss(meshes: Meshes) -> Tensor:
@@ -57,7 +62,7 @@ def laplacian_smoothing_loss(meshes: Meshes) -> Tensor:
     ``(L V)_i = v_i - mean(neighbours of v_i)`` (``uniform_laplacian``), as PyTorch3D's
     ``mesh_laplacian_smoothing(method="uniform")``.
     """
-    return _mean_per_mesh(laplacian_per_mesh(meshes))
+    return _mean_over_meshes(laplacian_per_mesh(meshes))
 
 
 def laplacian_per_mesh(meshes: Meshes) -> Tensor:

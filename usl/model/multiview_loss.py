@@ -32,6 +32,7 @@ from usl.losses import (
     l2d_loss,
     laplacian_per_mesh,
     normal_consistency,
+    offset_l2_per_mesh,
     sample_mask_points,
     silhouette_bce_loss,
     silhouette_chamfer_loss,
@@ -268,7 +269,7 @@ def shape_regularizers(
         if need.get("normal"):
             per_object["normal"] = normal_consistency(verts, template.faces, template.edge_faces)
         if need.get("offset_l2") and offsets:
-            per_object["offset_l2"] = 0.5 * torch.stack(offsets).pow(2).sum(dim=-1).mean(dim=-1).sum(dim=0)
+            per_object["offset_l2"] = offset_l2_per_mesh(torch.stack(offsets)).sum(dim=0)  # summed over stages
     zero = verts_cube.sum() * 0.0
     batch = len(counts)
     image = torch.repeat_interleave(
