@@ -106,7 +106,7 @@ def render_dynamic(
     if ignore_masks is None:
         target = resample_masks_area(masks, windows, resolution)
     else:  # both stacks in one call (padded to one size, which changes no coverage)
-        both = stack_masks([*masks, *stack_masks(ignore_masks).to(K.device)])
+        both = _cat_padded(stack_masks(masks), stack_masks(ignore_masks).to(K.device))
         target, hidden = resample_masks_area(both, windows.repeat(2, 1), resolution).split(num_pairs)
         valid = valid & (hidden <= 0.5)
     return DynamicRender(
@@ -219,3 +219,11 @@ def _cells_inside_image(windows: Tensor, image_sizes: Tensor, resolution: int) -
     inside_x = (xs >= 0) & (xs <= image_sizes[:, 1:2])
     inside_y = (ys >= 0) & (ys <= image_sizes[:, 0:1])
     return inside_y[:, :, None] & inside_x[:, None, :]
+
+
+def _cat_padded(first: Tensor, second: Tensor) -> Tensor:
+    """Two (P, H, W) mask stacks as one, the smaller padded with False to the larger size (no
+    coverage changes; no per-mask slices)."""
+    height, width = max(first.shape[-2], second.shape[-2]), max(first.shape[-1], second.shape[-1])
+    padded = [torch.nn.functional.pad(m, (0, width - m.shape[-1], 0, height - m.shape[-2])) for m in (first, second)]
+    return torch.cat(padded)
