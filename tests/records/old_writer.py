@@ -7,7 +7,6 @@ version's manifest (and, for v2, dataset card).
 """
 
 import json
-import shutil
 from pathlib import Path
 
 import pyarrow as pa
@@ -65,7 +64,10 @@ def write_old_copy(root: Path, target: Path, version: int) -> Path:
                 file = f"{split}/{table}-{shard['index']:05d}.parquet" if version == 1 else shard[table]["file"]
                 written = write_old_file(root / shard[table]["file"], target / file, table, version)
                 shard[table] = {"file": file, "rows": shard[table]["rows"], **written}
-    if version == 2:
-        shutil.copy(root / "README.md", target / "README.md")
+    if version == 2:  # a card of its own schema, which migrating must write anew
+        card = (root / "README.md").read_text()
+        old_card = card.replace("record schema version 3", "record schema version 2")
+        assert old_card != card
+        (target / "README.md").write_text(old_card)
     (target / "manifest.json").write_text(json.dumps(manifest, indent=1))
     return target

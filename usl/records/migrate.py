@@ -114,7 +114,7 @@ def migrate_dataset(root: str | Path, progress: bool = False) -> MigrationSummar
         for shard in entry["shards"]
         for table in TABLES
     }
-    kept = "the dataset is intact and the shards converted so far are kept"
+    kept = "the shards converted so far are kept and a rerun finishes the migration"
     with output_folder(root, "usl-records migrate", kept, token_dirs=tuple(sorted(shard_dirs))):
         return _migrate(root, progress)
 
