@@ -77,9 +77,8 @@ class FastRCNNOutputLayers(nn.Module):
             foreground = torch.nonzero(gt_classes < self.num_classes).squeeze(1)
         else:
             starts = itertools.accumulate((len(p) for p in proposals[:-1]), initial=0)
-            foreground = torch.cat(
-                [torch.arange(start, start + n, device=gt_classes.device) for start, n in zip(starts, num_foreground)]
-            )
+            rows = [row for start, n in zip(starts, num_foreground) for row in range(start, start + n)]
+            foreground = torch.tensor(rows, dtype=torch.long, device=gt_classes.device)  # one upload
         predicted = deltas.view(len(deltas), self.num_classes, 4)[foreground, gt_classes[foreground]]
         target = self.box2box.get_deltas(proposal_boxes[foreground], gt_boxes[foreground])
         loss_box = F.smooth_l1_loss(predicted, target, beta=self.cfg.smooth_l1_beta, reduction="sum")
