@@ -6,11 +6,12 @@ import itertools
 
 from typing import Sequence
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import nn
 
-from ..ops import Box2BoxTransform, batched_nms, clip_boxes
+from ..ops import Box2BoxTransform, batched_nms, kept_by_image
 from .config import BoxHeadConfig
 from .structures import Instances
 
@@ -100,19 +101,25 @@ class FastRCNNOutputLayers(nn.Module):
     ) -> list[Instances]:
         """Per image: decode every class's box, keep scores > ``score_thresh``, per-class NMS, top-k.
 
-        Returns Instances with ``pred_boxes``, ``scores``, ``pred_classes``.
+        All images in one NMS call, grouped by (image, class): two host reads (the candidates, the
+        detections per image) whatever the batch size. Returns Instances with ``pred_boxes``,
+        ``scores``, ``pred_classes``.
         """
+        if not proposals:
+            return []
+        device, num_classes = logits.device, self.num_classes
         counts = [len(p) for p in proposals]
-        results = []
-        for image_logits, image_deltas, proposal in zip(logits.split(counts), deltas.split(counts), proposals):
-            boxes = self.box2box.apply_deltas(image_deltas, proposal.proposal_boxes)
-            boxes = clip_boxes(boxes.view(-1, self.num_classes, 4), proposal.image_size)
-            scores = F.softmax(image_logits, dim=1)[:, :-1]
-            finite = torch.isfinite(boxes).all(dim=2) & torch.isfinite(scores)
-            rows, classes = torch.nonzero((scores > score_thresh) & finite, as_tuple=True)
-            boxes, scores = boxes[rows, classes], scores[rows, classes]
-            keep = batched_nms(boxes, scores, classes, nms_thresh)[:max_detections]
-            results.append(
-                Instances(proposal.image_size, pred_boxes=boxes[keep], scores=scores[keep], pred_classes=classes[keep])
-            )
-        return results
+        image = torch.as_tensor(np.repeat(np.arange(len(proposals)), counts), device=device)  # row -> image
+        boxes = self.box2box.apply_deltas(deltas, torch.cat([p.proposal_boxes for p in proposals]))
+        sizes = [(w, h, w, h) for h, w in (p.image_size for p in proposals)]
+        limits = torch.tensor(sizes, dtype=boxes.dtype, device=device)[image]  # clip_boxes with each row's image
+        boxes = torch.minimum(boxes.view(-1, num_classes, 4).clamp(min=0), limits[:, None])
+        scores = F.softmax(logits, dim=1)[:, :-1]
+        finite = torch.isfinite(boxes).all(dim=2) & torch.isfinite(scores)
+        rows, classes = torch.nonzero((scores > score_thresh) & finite, as_tuple=True)
+        boxes, scores, image = boxes[rows, classes], scores[rows, classes], image[rows]
+        kept = batched_nms(boxes, scores, image * num_classes + classes, nms_thresh)
+        return [
+            Instances(p.image_size, pred_boxes=boxes[keep], scores=scores[keep], pred_classes=classes[keep])
+            for p, keep in zip(proposals, (k[:max_detections] for k in kept_by_image(kept, image, len(proposals))))
+        ]

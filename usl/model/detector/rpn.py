@@ -9,7 +9,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from ..backbone import ShapeSpec
-from ..ops import AnchorGenerator, Box2BoxTransform, batched_nms, nonempty_boxes, padded_match_quality
+from ..ops import AnchorGenerator, Box2BoxTransform, batched_nms, kept_by_image, nonempty_boxes, padded_match_quality
 from .config import RPNConfig
 from .matcher import IGNORE, Matcher, subsample_labels_dense
 from .structures import ImageList, Instances
@@ -149,11 +149,8 @@ class RPN(nn.Module):
         index = torch.nonzero(keep).squeeze(1)
         groups = image[index] * len(self.in_features) + levels.repeat(num_images)[index]
         kept = index[batched_nms(boxes[index], scores[index], groups, self.cfg.nms_thresh)]
-        # image by image, each in decreasing score (ties by index), as NMS ran on each image alone
-        kept = kept[torch.sort(image[kept], stable=True).indices]
-        counts = (image[kept][None] == torch.arange(num_images, device=boxes.device)[:, None]).sum(1).tolist()
         proposals = []
-        for size, rows in zip(image_sizes, kept.split(counts)):
+        for size, rows in zip(image_sizes, kept_by_image(kept, image, num_images)):
             rows = rows[:post_topk]
             proposals.append(Instances(size, proposal_boxes=boxes[rows], objectness_logits=scores[rows]))
         return proposals

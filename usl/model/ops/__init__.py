@@ -13,7 +13,7 @@ from .boxes import (
     padded_match_quality,
     stack_padded,
 )
-from .nms import batched_nms, nms
+from .nms import batched_nms, kept_by_image, nms
 from .roi_align import RoIAlign, convert_boxes_to_rois, roi_align, roi_align_levels
 
 __all__ = [
@@ -28,6 +28,7 @@ __all__ = [
     "cell_anchors",
     "clip_boxes",
     "convert_boxes_to_rois",
+    "kept_by_image",
     "nms",
     "nonempty_boxes",
     "pairwise_intersection",

@@ -26,9 +26,18 @@ from typing import Optional
 import numpy as np
 import torch
 
+from ...utils.compiled import compiled, serves
+
 Tensor = torch.Tensor
 
 _CHUNK_ELEMENTS = 1 << 22  # candidate pairs whose IoU is computed at once
+_ROUNDS_PER_TEST = 8  # fixed-point rounds between stop tests: enough for the clusters of a detector's boxes
+# Cell keys (octave * span + cell x) * span + cell y, plus the group label's low bits above: the
+# cells clamped to +-2^19 (then a neighbour's fields stay in [0, span)), in int64 without overflow.
+_CELL_LIMIT = float(1 << 19)
+_CELL_SPAN = (1 << 20) + 3
+_GROUP_MASK, _GROUP_SHIFT = (1 << 10) - 1, 52
+_NO_BOX = -(1 << 62)  # the key of an unusable box: below every cell's
 # The candidate search is loosened by 1% so that rounding in the IoUs never makes it miss a true pair.
 _ROUNDING_MARGIN = 0.99
 
@@ -62,6 +71,15 @@ def batched_nms(boxes: Tensor, scores: Tensor, idxs: Tensor, iou_threshold: floa
     return _pure_torch_batched_nms(boxes, scores, idxs, iou_threshold)
 
 
+def kept_by_image(kept: Tensor, image: Tensor, num_images: int) -> list[Tensor]:
+    """``kept`` (indices from one NMS call over several images' boxes, ``image[k]`` the image of box
+    k) split by image, each in decreasing score order (ties by index) as if NMS had run on that
+    image alone: one host read, the number of boxes kept per image."""
+    kept = kept[torch.sort(image[kept], stable=True).indices]
+    counts = (image[kept][None] == torch.arange(num_images, device=kept.device)[:, None]).sum(1).tolist()
+    return list(kept.split(counts))
+
+
 # ----------------------------------------------------------------------------- pure torch
 def _pure_torch_nms(boxes: Tensor, scores: Tensor, iou_threshold: float) -> Tensor:
     order = _score_order(scores)
@@ -80,141 +98,126 @@ def _score_order(scores: Tensor) -> Tensor:
 def _greedy(boxes: Tensor, groups: Optional[Tensor], threshold: float) -> Tensor:
     """Positions (ascending) kept by greedy NMS over boxes already in score order."""
     count = boxes.shape[0]
-    keep = torch.ones(count, dtype=torch.bool, device=boxes.device)
     if count < 2:
-        return torch.nonzero(keep).squeeze(1)
+        return torch.arange(count, device=boxes.device)
     source, target = _suppression_edges(boxes, groups, threshold)
-    hits = torch.zeros(count, dtype=torch.int32, device=boxes.device)
+    return _fixed_point(source, target, count)
+
+
+def _fixed_point(source: Tensor, target: Tensor, count: int) -> Tensor:
+    """Positions kept at the fixed point of ``keep[j] = not any(keep[i] for edges i -> j)``, from
+    ``keep = all``; an edge with ``target == count`` is none.
+
+    The map is antitone and starts from the top, so consecutive iterates are nested (alternately
+    each a subset of the other): equal counts mean equal iterates, the fixed point. Rounds run in
+    batches between stop tests (rounds past the fixed point change nothing), and a test reads both
+    counts at once, the second being the output's size.
+    """
+    keep = torch.ones(count + 1, dtype=torch.int32, device=source.device)  # the last slot: a sink
+    previous = torch.empty_like(keep)
+    hits = torch.zeros_like(keep)
+    rounds = _ROUNDS_PER_TEST
     while True:
-        settled = hits.zero_().index_add_(0, target, keep[source].int()) == 0
-        if torch.equal(settled, keep):
-            return torch.nonzero(keep).squeeze(1)
-        keep = settled
+        for _ in range(rounds):
+            keep, previous = torch.eq(torch.index_add(hits, 0, target, keep[source]), 0, out=previous), keep
+        before, kept = torch.stack([previous, keep])[:, :count].sum(1).tolist()
+        if before == kept:
+            return torch.nonzero_static(keep[:count], size=kept).squeeze(1)
+        rounds *= 2  # a long suppression chain: fewer tests for it
 
 
 def _suppression_edges(boxes: Tensor, groups: Optional[Tensor], threshold: float) -> tuple[Tensor, Tensor]:
-    """All pairs (earlier rank, later rank) of one group whose IoU exceeds ``threshold``."""
+    """Candidate pairs (earlier rank, later rank) and whether each is an edge: the later rank where
+    the pair is of two boxes of one group whose IoU exceeds ``threshold``, ``len(boxes)`` where not."""
+    count = len(boxes)
     if threshold < 0:  # even disjoint boxes suppress each other: every pair is a candidate
-        first, second = torch.triu_indices(len(boxes), len(boxes), 1, device=boxes.device)
+        source, target = torch.triu_indices(count, count, 1, device=boxes.device)
     else:
-        first, second = _candidate_pairs(boxes, groups, threshold * _ROUNDING_MARGIN)
-    sources, targets = [], []
-    for start in range(0, first.numel(), _CHUNK_ELEMENTS):
-        i, j = first[start : start + _CHUNK_ELEMENTS], second[start : start + _CHUNK_ELEMENTS]
-        above = _above(_pair_iou(boxes[i], boxes[j]), threshold)
-        if groups is not None:
-            above &= groups[i] == groups[j]
-        sources.append(torch.minimum(i, j)[above])
-        targets.append(torch.maximum(i, j)[above])
-    if not sources:
-        empty = torch.zeros(0, dtype=torch.long, device=boxes.device)
-        return empty, empty
-    return torch.cat(sources), torch.cat(targets)
+        source, target = _candidate_pairs(boxes, groups, threshold * _ROUNDING_MARGIN)
+    corners = boxes.view(count, 2, 2)
+    area = (corners[:, 1] - corners[:, 0]).prod(1)
+    edge = source < target  # not a box with itself
+    for start in range(0, source.numel(), _CHUNK_ELEMENTS):
+        i, j = source[start : start + _CHUNK_ELEMENTS], target[start : start + _CHUNK_ELEMENTS]
+        edge[start : start + _CHUNK_ELEMENTS] &= _above(_pair_iou(corners, area, i, j), threshold)
+    if groups is not None:
+        edge &= groups[source] == groups[target]
+    return source, target.masked_fill(~edge, count)
 
 
 def _candidate_pairs(boxes: Tensor, groups: Optional[Tensor], threshold: float) -> tuple[Tensor, Tensor]:
-    """Pairs (i, j) that can have IoU > threshold, each unordered pair once: a spatial hash join.
+    """Pairs of boxes (earlier rank, later or equal rank) among which are all that have
+    IoU > threshold: a spatial hash join.
 
     IoU > t needs both side ratios above t, so the longer sides m = max(w, h) differ by less than
     1/t and their octaves k = floor(log2 m) by at most ``spread``; it also needs the centres closer
     than ``(1 - t) max(w)`` in x (and likewise in y), below the cell size ``(1 - t) 2^(k+1)`` of the
     larger box's octave. So each box j is hashed into its octave's grid, each box i into the 3 x 3
     cells around it in the grids of octaves ``k_i .. k_i + spread``, and equal keys pair up.
-    Boxes with a non-positive or non-finite side never exceed a threshold >= 0 and are left out.
+    Boxes with a non-positive or non-finite side never exceed a threshold >= 0 and are hashed to a
+    key no query has. The only host read is the number of pairs.
     """
-    device = boxes.device
-    x0, y0, x1, y1 = boxes.double().unbind(1)
-    w, h = x1 - x0, y1 - y0
-    usable = torch.nonzero(torch.isfinite(boxes).all(1) & (w > 0) & (h > 0)).squeeze(1)
-    count = usable.numel()
+    device, count = boxes.device, len(boxes)
     spread = math.ceil(1.0 + math.log2(1.0 / threshold)) - 1 if threshold > 0 else None
-    if threshold >= 1.0 or count < 2:  # IoU never exceeds 1
-        return usable[:0], usable[:0]
+    if threshold >= 1.0:  # IoU never exceeds 1
+        empty = torch.zeros(0, dtype=torch.long, device=device)
+        return empty, empty
     if spread is None or spread > 8:  # tiny thresholds pair (almost) everything: no hashing
         first, second = torch.triu_indices(count, count, 1, device=device)
-        return usable[first], usable[second]
-    w, h = w[usable], h[usable]
-    centre_x, centre_y = (x0[usable] + x1[usable]) / 2, (y0[usable] + y1[usable]) / 2
-    octave = torch.floor(torch.log2(torch.maximum(w, h))).long()
-    group = None if groups is None else torch.unique(groups[usable], return_inverse=True)[1]
+        return first, second
+    low, high = boxes.double().view(count, 2, 2).unbind(1)
+    size = high - low
+    side = size.amax(1)
+    unusable = ~((size.amin(1) > 0) & (side < math.inf))  # NaN too
+    # Octaves clamped from below (a coarser grid only adds candidates) keep cell sizes positive.
+    octave = side.masked_fill(unusable, 1.0).log2_().floor_().clamp_(min=-1000)
+    # Key of box i's cell in the grid of octave k_i + s, for s = 0 .. spread (s = 0: its own cell).
+    octaves = octave[:, None] + torch.arange(spread + 1, device=device, dtype=octave.dtype)
+    twice_cell = torch.exp2(octaves).mul_(4 * (1.0 - threshold))
+    twice_centre = (low + high).masked_fill_(unusable[:, None], 0.0)
+    cells = torch.div(twice_centre[:, None], twice_cell[..., None], rounding_mode="floor")
+    # Clamping keeps neighbouring cells neighbours, and each key field within its span.
+    x, y = cells.clamp_(-_CELL_LIMIT, _CELL_LIMIT).long().unbind(2)
+    key = (octaves.long() * _CELL_SPAN + x) * _CELL_SPAN + y
+    if groups is not None:  # group labels modulo 2^10: equal groups share the field, few others do
+        key += (groups[:, None] & _GROUP_MASK) << _GROUP_SHIFT
+    build_key = key[:, 0].masked_fill(unusable, _NO_BOX)  # unusable boxes' queries find only usable ones
+    # The 3 x 3 cells around: key fields are linear, so neighbouring cells' keys are offsets.
+    around = torch.arange(-1, 2, device=device)
+    query_key = (key[:, :, None] + (around[:, None] * _CELL_SPAN + around).view(-1)).view(-1)
+    query_box = torch.arange(count, device=device).repeat_interleave(9 * (spread + 1))
 
-    # Build side: each box in its own octave's grid. Query side: each box in the grids of octaves
-    # k .. k + spread, at the 3 x 3 cells around its centre.
-    build = _grid_cells(centre_x, centre_y, octave, threshold)
-    query_box = torch.arange(count, device=device).repeat_interleave(spread + 1)
-    query_octave = octave[query_box] + torch.arange(spread + 1, device=device).repeat(count)
-    qx, qy = _grid_cells(centre_x[query_box], centre_y[query_box], query_octave, threshold)
-    around = torch.tensor([-1, 0, 1], device=device)
-    qx = (qx[:, None, None] + around[None, :, None]).expand(-1, 3, 3).reshape(-1)
-    qy = (qy[:, None, None] + around[None, None, :]).expand(-1, 3, 3).reshape(-1)
-    query_box, query_octave = query_box.repeat_interleave(9), query_octave.repeat_interleave(9)
-    keys = _cell_keys((octave, *build, group), (query_octave, qx, qy, None if group is None else group[query_box]))
-    if keys is None:  # the key range would overflow int64: compare all pairs instead
-        first, second = torch.triu_indices(count, count, 1, device=device)
-        return usable[first], usable[second]
-    build_key, query_key = keys
     order = torch.argsort(build_key)
     sorted_keys = build_key[order]
-    low = torch.searchsorted(sorted_keys, query_key, side="left")
-    matches = torch.searchsorted(sorted_keys, query_key, side="right") - low
+    first = torch.searchsorted(sorted_keys, query_key, side="left")
+    matches = torch.searchsorted(sorted_keys, query_key, side="right") - first
     total = int(matches.sum())
     # Expand each query to its run of matching build entries.
-    run_start = torch.repeat_interleave(low - (torch.cumsum(matches, 0) - matches), matches, output_size=total)
+    run_start = torch.repeat_interleave(first - (torch.cumsum(matches, 0) - matches), matches, output_size=total)
     j = order[run_start + torch.arange(total, device=device)]
     i = torch.repeat_interleave(query_box, matches, output_size=total)
-    # Same octave: each pair is found from both boxes, keep i < j; across octaves i is the smaller.
-    keep = (octave[i] < octave[j]) | ((octave[i] == octave[j]) & (i < j))
-    return usable[i[keep]], usable[j[keep]]
+    # Pairs of one octave are found twice (an edge twice changes nothing), a box pairs with itself;
+    # keys equal by collision (clamped cells, group labels) add pairs the IoU test drops.
+    return torch.minimum(i, j), torch.maximum(i, j)
 
 
-def _grid_cells(x: Tensor, y: Tensor, octave: Tensor, threshold: float) -> tuple[Tensor, Tensor]:
-    cell = (1.0 - threshold) * torch.exp2(octave.double() + 1)
-    return torch.floor(x / cell).long(), torch.floor(y / cell).long()
-
-
-def _cell_keys(build: tuple, query: tuple) -> Optional[tuple[Tensor, Tensor]]:
-    """One int64 key per (group, octave, cell x, cell y) for both sides, or None on overflow."""
-    lows, spans = [], []
-    for b, q in zip(build[:3], query[:3]):
-        low = torch.minimum(b.min(), q.min())
-        lows.append(low)
-        spans.append(int(torch.maximum(b.max(), q.max()) - low) + 1)
-    groups = 1 if build[3] is None else int(build[3].max()) + 1
-    if float(math.prod(spans)) * groups >= 2.0**62:
-        return None
-
-    def key(parts: tuple) -> Tensor:
-        value = parts[0] - lows[0]
-        for part, low, span in zip(parts[1:3], lows[1:], spans[1:]):
-            value = value * span + (part - low)
-        return value if parts[3] is None else value + parts[3] * math.prod(spans)
-
-    return key(build), key(query)
-
-
-def _pair_iou(first: Tensor, second: Tensor) -> Tensor:
-    """IoU of row k of ``first`` with row k of ``second``, with the arithmetic of ``box_iou``."""
-    ax0, ay0, ax1, ay1 = first.unbind(1)
-    bx0, by0, bx1, by1 = second.unbind(1)
-    inter = (torch.minimum(ax1, bx1) - torch.maximum(ax0, bx0)).clamp_(min=0)
-    inter *= (torch.minimum(ay1, by1) - torch.maximum(ay0, by0)).clamp_(min=0)
-    union = ((ax1 - ax0) * (ay1 - ay0) + (bx1 - bx0) * (by1 - by0)).sub_(inter)
-    return inter.div_(union)
+def _pair_iou(corners: Tensor, area: Tensor, i: Tensor, j: Tensor) -> Tensor:
+    """IoU of boxes i[k] and j[k] (``corners`` (N, 2, 2), ``area`` (N,)), with the arithmetic of ``box_iou``."""
+    first, second = corners[i], corners[j]
+    near, far = torch.maximum(first, second)[:, 0], torch.minimum(first, second)[:, 1]
+    inter = (far - near).clamp_(min=0).prod(1)
+    return inter / (area[i] + area[j] - inter)
 
 
 def _above(iou: Tensor, threshold: float) -> Tensor:
-    """``iou > threshold`` with the threshold as a real number (as torchvision compares it).
-
-    A plain comparison would round ``threshold`` to the IoU's precision first; where that rounds
-    up, ``>=`` against the rounded value is the exact test.
-    """
-    rounded = torch.tensor(threshold, dtype=iou.dtype).item()
-    return iou >= rounded if rounded > threshold else iou > rounded
+    """``iou > threshold`` with the threshold as a real number (as torchvision compares it): in
+    float64, which holds every lower-precision IoU and the Python float exactly."""
+    return iou.double() > threshold
 
 
 # ----------------------------------------------------------------------------- compiled (CPU)
 def _use_compiled(boxes: Tensor) -> bool:
-    return _greedy_kernel is not None and boxes.device.type == "cpu" and boxes.dtype in (torch.float32, torch.float64)
+    return serves(boxes) and boxes.dtype in (torch.float32, torch.float64)
 
 
 def _compiled_batched_nms(boxes: Tensor, scores: Tensor, idxs: Optional[Tensor], iou_threshold: float) -> Tensor:
@@ -270,12 +273,7 @@ def _greedy_loop(x0, y0, x1, y1, area, inert, group_end, threshold, suppressed, 
     return kept
 
 
-try:  # numba is a dependency; without it the pure-torch path serves the CPU too
-    import numba
-except ImportError:
-    numba = None
-# numpy's error model: x / 0 gives inf/nan as in torch; cache: compiled once per machine, on disk.
-_greedy_kernel = numba.njit(cache=True, nogil=True, error_model="numpy")(_greedy_loop) if numba else None
+_greedy_kernel = compiled(_greedy_loop)
 
 
 # ----------------------------------------------------------------------------- torchvision
