@@ -75,9 +75,9 @@ def kept_by_image(kept: Tensor, image: Tensor, num_images: int) -> list[Tensor]:
     """``kept`` (indices from one NMS call over several images' boxes, ``image[k]`` the image of box
     k) split by image, each in decreasing score order (ties by index) as if NMS had run on that
     image alone: one host read, the number of boxes kept per image."""
-    kept = kept[torch.sort(image[kept], stable=True).indices]
-    counts = (image[kept][None] == torch.arange(num_images, device=kept.device)[:, None]).sum(1).tolist()
-    return list(kept.split(counts))
+    images, by_image = torch.sort(image[kept], stable=True)
+    counts = (images[None] == torch.arange(num_images, device=kept.device)[:, None]).sum(1).tolist()
+    return list(kept[by_image].split(counts))
 
 
 # ----------------------------------------------------------------------------- pure torch
@@ -136,10 +136,12 @@ def _suppression_edges(boxes: Tensor, groups: Optional[Tensor], threshold: float
         source, target = _candidate_pairs(boxes, groups, threshold * _ROUNDING_MARGIN)
     corners = boxes.view(count, 2, 2)
     area = (corners[:, 1] - corners[:, 0]).prod(1)
-    edge = source < target  # not a box with itself
-    for start in range(0, source.numel(), _CHUNK_ELEMENTS):
+    above = []
+    for start in range(0, max(source.numel(), 1), _CHUNK_ELEMENTS):
         i, j = source[start : start + _CHUNK_ELEMENTS], target[start : start + _CHUNK_ELEMENTS]
-        edge[start : start + _CHUNK_ELEMENTS] &= _above(_pair_iou(corners, area, i, j), threshold)
+        above.append(_above(_pair_iou(corners, area, i, j), threshold))
+    edge = above[0] if len(above) == 1 else torch.cat(above)
+    edge &= source < target  # not a box with itself
     if groups is not None:
         edge &= groups[source] == groups[target]
     return source, target.masked_fill(~edge, count)
@@ -174,27 +176,28 @@ def _candidate_pairs(boxes: Tensor, groups: Optional[Tensor], threshold: float) 
     # Key of box i's cell in the grid of octave k_i + s, for s = 0 .. spread (s = 0: its own cell).
     octaves = octave[:, None] + torch.arange(spread + 1, device=device, dtype=octave.dtype)
     twice_cell = torch.exp2(octaves).mul_(4 * (1.0 - threshold))
-    twice_centre = (low + high).masked_fill_(unusable[:, None], 0.0)
-    cells = torch.div(twice_centre[:, None], twice_cell[..., None], rounding_mode="floor")
-    # Clamping keeps neighbouring cells neighbours, and each key field within its span.
-    x, y = cells.clamp_(-_CELL_LIMIT, _CELL_LIMIT).long().unbind(2)
-    key = (octaves.long() * _CELL_SPAN + x) * _CELL_SPAN + y
+    cells = torch.div((low + high)[:, None], twice_cell[..., None], rounding_mode="floor")
+    # Clamping keeps neighbouring cells neighbours and each key field within its span (an unusable
+    # box's NaN becomes a cell too). Integers below 2^53: the key is exact in float64.
+    x, y = cells.nan_to_num_().clamp_(-_CELL_LIMIT, _CELL_LIMIT).unbind(2)
+    key = torch.add(y, torch.add(x, octaves, alpha=_CELL_SPAN), alpha=_CELL_SPAN).long()
     if groups is not None:  # group labels modulo 2^10: equal groups share the field, few others do
         key += (groups[:, None] & _GROUP_MASK) << _GROUP_SHIFT
     build_key = key[:, 0].masked_fill(unusable, _NO_BOX)  # unusable boxes' queries find only usable ones
-    # The 3 x 3 cells around: key fields are linear, so neighbouring cells' keys are offsets.
-    around = torch.arange(-1, 2, device=device)
-    query_key = (key[:, :, None] + (around[:, None] * _CELL_SPAN + around).view(-1)).view(-1)
-    query_box = torch.arange(count, device=device).repeat_interleave(9 * (spread + 1))
+    # The 3 x 3 cells around: key fields are linear and y the lowest, so the cells (x + dx, y - 1 ..
+    # y + 1) are the key range (key + dx span - 1 .. key + dx span + 1).
+    query_key = (key[:, :, None] + torch.arange(-1, 2, device=device) * _CELL_SPAN).view(-1)
+    query_box = torch.arange(count, device=device).repeat_interleave(3 * (spread + 1))
 
     order = torch.argsort(build_key)
     sorted_keys = build_key[order]
-    first = torch.searchsorted(sorted_keys, query_key, side="left")
-    matches = torch.searchsorted(sorted_keys, query_key, side="right") - first
+    first = torch.searchsorted(sorted_keys, query_key - 1, side="left")
+    last = torch.searchsorted(sorted_keys, query_key + 1, side="right")
+    matches = last - first
     total = int(matches.sum())
     # Expand each query to its run of matching build entries.
-    run_start = torch.repeat_interleave(first - (torch.cumsum(matches, 0) - matches), matches, output_size=total)
-    j = order[run_start + torch.arange(total, device=device)]
+    run_end = torch.repeat_interleave(last - torch.cumsum(matches, 0), matches, output_size=total)
+    j = order[run_end + torch.arange(total, device=device)]
     i = torch.repeat_interleave(query_box, matches, output_size=total)
     # Pairs of one octave are found twice (an edge twice changes nothing), a box pairs with itself;
     # keys equal by collision (clamped cells, group labels) add pairs the IoU test drops.
@@ -210,9 +213,17 @@ def _pair_iou(corners: Tensor, area: Tensor, i: Tensor, j: Tensor) -> Tensor:
 
 
 def _above(iou: Tensor, threshold: float) -> Tensor:
-    """``iou > threshold`` with the threshold as a real number (as torchvision compares it): in
-    float64, which holds every lower-precision IoU and the Python float exactly."""
-    return iou.double() > threshold
+    """``iou > threshold`` with the threshold as a real number (as torchvision compares it): against
+    the largest value of the IoU's dtype not above it, rounded on the host; dtypes numpy lacks
+    compare in float64, which holds them and the Python float exactly."""
+    dtype = _NUMPY_FLOATS.get(iou.dtype)
+    if dtype is None:
+        return iou.double() > threshold
+    rounded = dtype(threshold)
+    return iou > float(np.nextafter(rounded, dtype(-np.inf)) if float(rounded) > threshold else rounded)
+
+
+_NUMPY_FLOATS = {torch.float16: np.float16, torch.float32: np.float32, torch.float64: np.float64}
 
 
 # ----------------------------------------------------------------------------- compiled (CPU)
