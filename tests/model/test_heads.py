@@ -287,3 +287,45 @@ def test_box_losses_with_host_foreground_counts_equal_the_device_search_and_read
     (device, device_grad, device_syncs), (host, host_grad, host_syncs) = results
     assert all(torch.equal(device[k], host[k]) for k in device) and torch.equal(device_grad, host_grad)
     assert device_syncs >= 1 and host_syncs == 0
+
+
+def test_box_inference_of_all_images_at_once_matches_one_image_at_a_time_with_reads_per_batch():
+    """The former per-image loop (decode, clip, threshold, per-class NMS, top-k) is the oracle;
+    the batched call reads the device as often for one image as for four, on the torch paths."""
+    from usl.model.ops import batched_nms, clip_boxes
+    from usl.utils.compiled import torch_paths_only
+
+    g = torch.Generator().manual_seed(3)
+    head = FastRCNNOutputLayers(16, 3, BoxHeadConfig())
+    sizes, counts = [(80, 96), (64, 64), (48, 80), (80, 80)], [30, 0, 25, 40]
+    proposals = []
+    for size, n in zip(sizes, counts):
+        corner = torch.rand(n, 2, generator=g) * 60 - 5
+        proposals.append(
+            Instances(size, proposal_boxes=torch.cat([corner, corner + 5 + torch.rand(n, 2, generator=g) * 30], 1))
+        )
+    with torch.no_grad():
+        logits, deltas = head(torch.randn(sum(counts), 16, generator=g))
+    logits = logits.round(decimals=1)  # tied scores
+    deltas[3] = float("nan")
+    new = head.inference(logits, deltas, proposals, 0.05, 0.5, 12)
+    for image, (proposal, image_logits, image_deltas) in enumerate(
+        zip(proposals, logits.split(counts), deltas.split(counts))
+    ):
+        boxes = head.box2box.apply_deltas(image_deltas, proposal.proposal_boxes)
+        boxes = clip_boxes(boxes.view(-1, 3, 4), proposal.image_size)
+        scores = F.softmax(image_logits, dim=1)[:, :-1]
+        finite = torch.isfinite(boxes).all(dim=2) & torch.isfinite(scores)
+        rows, classes = torch.nonzero((scores > 0.05) & finite, as_tuple=True)
+        boxes, scores = boxes[rows, classes], scores[rows, classes]
+        keep = batched_nms(boxes, scores, classes, 0.5)[:12]
+        assert torch.equal(new[image].pred_boxes, boxes[keep]) and torch.equal(new[image].scores, scores[keep])
+        assert torch.equal(new[image].pred_classes, classes[keep]) and new[image].image_size == proposal.image_size
+    assert sum(len(r) for r in new) > 12  # detections to compare
+    syncs = []
+    for images in (1, 4):
+        rows = sum(counts[:images])
+        with torch_paths_only(), count_ops() as count:
+            head.inference(logits[:rows], deltas[:rows], proposals[:images], 0.05, 0.5, 12)
+        syncs.append(count.total_syncs)
+    assert syncs[0] == syncs[1], syncs

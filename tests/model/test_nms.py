@@ -98,3 +98,101 @@ def test_equals_torchvision():
             NMS._pure_torch_batched_nms(boxes, tied, groups, threshold),
         )
     assert NMS._agrees_with_torchvision(torch.device("cpu"))
+
+
+def compiled_nms(boxes, scores, threshold, groups=None):
+    return NMS._compiled_batched_nms(boxes, scores, groups, threshold).tolist()
+
+
+def pure_nms(boxes, scores, threshold, groups=None):
+    if groups is None:
+        return NMS._pure_torch_nms(boxes, scores, threshold).tolist()
+    return NMS._pure_torch_batched_nms(boxes, scores, groups, threshold).tolist()
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_long_suppression_chain_needs_many_rounds(dtype):
+    # Box k overlaps box k + 1 (IoU 0.82) but not box k + 2 (IoU 0.67) at threshold 0.7, scores
+    # falling along the chain: whether box k is kept depends on all before it (k rounds).
+    count = 150
+    x = torch.arange(count, dtype=dtype) * 1.0
+    boxes = torch.stack([x, torch.zeros_like(x), x + 10, torch.full_like(x, 10)], 1)
+    scores = torch.linspace(1, 0, count, dtype=dtype)
+    expected = list(range(0, count, 2))
+    assert nms_loop(boxes, scores, 0.7) == expected
+    assert pure_nms(boxes, scores, 0.7) == compiled_nms(boxes, scores, 0.7) == expected
+
+
+def test_groups_that_share_a_hash_field_do_not_suppress_each_other():
+    boxes = torch.tensor([[0.0, 0, 10, 10], [0.0, 0, 10, 10.5], [0.0, 0, 10, 11], [1.0, 0, 11, 10]]).double()
+    scores = torch.tensor([0.9, 0.8, 0.7, 0.6]).double()
+    groups = torch.tensor([5, 5 + 1024, -(1 << 40) + 5, 5])  # equal modulo 2^10
+    assert pure_nms(boxes, scores, 0.5, groups) == nms_loop(boxes, scores, 0.5, groups) == [0, 1, 2]
+
+
+@pytest.mark.parametrize("offset", [0.0, 1e7, -3e9])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_far_and_tiny_boxes_whose_cells_clamp_together(offset, dtype):
+    # far from the origin (cells beyond +-2^19 clamp into one) and tiny boxes (fine grids)
+    generator = torch.Generator().manual_seed(3)
+    boxes = random_boxes(generator, 300, spread=40.0, dtype=torch.float64)
+    boxes[::3] = boxes[::3] * 1e-6
+    boxes[1::3, 0::2] += offset
+    boxes = boxes.to(dtype)
+    scores = torch.randint(0, 5, (300,), generator=generator).to(dtype)
+    groups = torch.randint(0, 3, (300,), generator=generator)
+    assert pure_nms(boxes, scores, 0.5) == compiled_nms(boxes, scores, 0.5)
+    assert pure_nms(boxes, scores, 0.5, groups) == compiled_nms(boxes, scores, 0.5, groups)
+
+
+@pytest.mark.parametrize("threshold", [0.0, 0.01, 0.999, 1.0 - 1e-9, 1.0])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_extreme_thresholds_equal_the_compiled_loop_and_the_python_loop(threshold, dtype):
+    generator = torch.Generator().manual_seed(4)
+    boxes = random_boxes(generator, 120, spread=20.0, dtype=torch.float64)
+    boxes[60:] = boxes[:60]  # duplicates: IoU exactly 1
+    boxes[100:110] = boxes[100:110].round()  # boxes touching at an edge: IoU 0 and ties
+    scores = torch.randint(0, 4, (120,), generator=generator).double()
+    groups = torch.randint(0, 2, (120,), generator=generator)
+    expected = nms_loop(boxes, scores, threshold, groups)
+    boxes, scores = boxes.to(dtype), scores.to(dtype)
+    assert pure_nms(boxes, scores, threshold, groups) == compiled_nms(boxes, scores, threshold, groups)
+    if dtype == torch.float64:
+        assert pure_nms(boxes, scores, threshold, groups) == expected
+
+
+@pytest.mark.parametrize("count", [2, 40])
+def test_unusable_boxes_never_suppress_and_are_kept(count):
+    boxes = torch.full((count, 4), float("nan"))
+    boxes[::2] = torch.tensor([0.0, 0.0, 0.0, 5.0])  # empty
+    boxes[1::4] = torch.tensor([0.0, 0.0, float("inf"), 5.0])
+    scores = torch.arange(count, dtype=torch.float32)
+    assert pure_nms(boxes, scores, 0.5) == compiled_nms(boxes, scores, 0.5) == list(range(count - 1, -1, -1))
+
+
+def test_float16_threshold_is_compared_as_a_real_number():
+    iou = torch.tensor([0.3, 0.5, 0.7], dtype=torch.float16)  # each rounded off its decimal threshold
+    expected = [float(v) > t for v, t in zip(iou.double().tolist(), (0.3, 0.5, 0.7))]
+    assert [bool(NMS._above(iou[k : k + 1], t)) for k, t in enumerate((0.3, 0.5, 0.7))] == expected
+    assert NMS._above(iou.bfloat16(), 0.5).tolist() == [float(v) > 0.5 for v in iou.bfloat16().double().tolist()]
+
+
+@pytest.mark.parametrize("count, groups", [(60, 1), (3000, 1), (3000, 37)])
+def test_pure_torch_path_reads_the_device_twice_whatever_the_boxes_and_groups(count, groups):
+    """The count of candidate pairs, then both fixed-point counts after a batch of rounds."""
+    from usl.utils.op_count import count_ops
+
+    generator = torch.Generator().manual_seed(5)
+    boxes = random_boxes(generator, count, spread=8 * count**0.5, dtype=torch.float32)
+    scores = torch.rand(count, generator=generator)
+    labels = torch.randint(0, groups, (count,), generator=generator)
+    with count_ops() as counted:
+        kept = NMS._pure_torch_batched_nms(boxes, scores, labels, 0.7)
+    assert counted.total_syncs == 2 and counted.uploads == 0, counted.syncs
+    assert kept.tolist() == compiled_nms(boxes, scores, 0.7, labels)
+
+
+def test_kept_by_image_orders_each_image_as_if_alone():
+    image = torch.tensor([1, 0, 1, 2, 0, 1])
+    kept = torch.tensor([5, 1, 0, 4, 2])  # in decreasing score order over all images
+    assert [k.tolist() for k in NMS.kept_by_image(kept, image, 4)] == [[1, 4], [5, 0, 2], [], []]
