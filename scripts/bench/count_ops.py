@@ -16,8 +16,9 @@ that many uncounted steps (compare commits in one run, alternating, with OMP_NUM
 usl-predict and usl-eval run per batch), with the trained-from-scratch weights of the step.
 
 By default the step runs the torch paths a CUDA step runs, also on a CPU: on CPU tensors the soft
-rasterizer, mask resampling and silhouette Chamfer are compiled loops (``usl.utils.compiled``) that
-read their inputs on the host, which only the CPU pays. ``--compiled`` counts the CPU's own step.
+rasterizer, mask resampling, silhouette Chamfer and NMS are compiled loops (``usl.utils.compiled``)
+that read their inputs on the host, which only the CPU pays; NMS counts its pure-torch path (CUDA
+runs torchvision's kernel instead where torchvision is installed). ``--compiled`` counts the CPU's own step.
 """
 
 from __future__ import annotations

@@ -128,6 +128,7 @@ def test_groups_that_share_a_hash_field_do_not_suppress_each_other():
     scores = torch.tensor([0.9, 0.8, 0.7, 0.6]).double()
     groups = torch.tensor([5, 5 + 1024, -(1 << 40) + 5, 5])  # equal modulo 2^10
     assert pure_nms(boxes, scores, 0.5, groups) == nms_loop(boxes, scores, 0.5, groups) == [0, 1, 2]
+    assert pure_nms(boxes, scores, 0.5, torch.tensor([7, 7 + 1024, 7 + 2048, 7], dtype=torch.int32)) == [0, 1, 2]
 
 
 @pytest.mark.parametrize("offset", [0.0, 1e7, -3e9])

@@ -1,9 +1,10 @@
-"""numba-compiled CPU loops beside torch paths (the soft rasterizer, mask resampling, 2D nearest points).
+"""numba-compiled CPU loops beside torch paths (the soft rasterizer, mask resampling, 2D nearest
+points, the greedy NMS of ``usl.model.ops.nms``).
 
-As the NMS's CPU loop in ``usl.model.ops.nms``: numba is a dependency, compiled loops are cached on
-disk (compiled once per machine and argument types), and without numba the torch paths serve the
-CPU too; the torch paths also serve other devices and are the tests' oracles. Loops get their
-outputs preallocated, so compiled code never allocates.
+numba is a dependency, compiled loops are cached on disk (compiled once per machine and argument
+types), and without numba the torch paths serve the CPU too; the torch paths also serve other
+devices and are the tests' oracles. Loops get their outputs preallocated, so compiled code never
+allocates.
 """
 
 from __future__ import annotations

@@ -5,14 +5,18 @@
   beats its CPU kernel (``scripts/bench/nms.py``); numba caches the compiled loop on disk.
 * CUDA: ``torchvision.ops.nms`` where torchvision loads and agrees with the pure-torch path on a
   probe set (checked once per device type); otherwise the pure-torch path below.
-* Pure torch, on the boxes' device: greedy NMS as a graph problem, so nothing walks the boxes
-  one by one. (1) A spatial hash join finds the pairs that *can* exceed the threshold (IoU > t
-  needs side ratios above t and centres closer than ``(1 - t) max(w)``, ``(1 - t) max(h)``); their
-  exact IoUs give the suppression edges, earlier score rank -> later rank. (2) ``keep[j] = not
-  any(keep[i] for edges i -> j)`` iterated from ``keep = all`` fixes ranks in order and has a
-  unique fixed point, so the first repeat is exactly the greedy result; each iteration is one
-  gather and one scatter, and clusters settle in a handful of iterations. Its stop test is the
-  only device-to-host synchronisation.
+* Pure torch, on the boxes' device (also on the CPU inside ``usl.utils.compiled.torch_paths_only``,
+  which is how ``scripts/bench/count_ops.py`` counts CUDA's NMS): greedy NMS as a graph problem,
+  so nothing walks the boxes one by one. (1) A spatial hash join finds the pairs that *can* exceed
+  the threshold (IoU > t needs side ratios above t and centres closer than ``(1 - t) max(w)``,
+  ``(1 - t) max(h)``); their exact IoUs give the suppression edges, earlier score rank -> later
+  rank, kept as a mask over the candidates rather than selected. (2) ``keep[j] = not any(keep[i]
+  for edges i -> j)`` iterated from ``keep = all`` fixes ranks in order and has a unique fixed
+  point, which is exactly the greedy result; each iteration is one gather and one scatter, and a
+  detector's clusters settle within the first batch of rounds (8). Two host reads per call,
+  whatever the number of boxes and groups: the number of candidate pairs, and one stop test per
+  batch of rounds (a chain of suppressions longer than a batch takes more, each batch twice the
+  last), whose count of kept boxes sizes the output.
 
 Every path compares IoUs with the threshold as a real number (as torchvision does) and ranks
 equal scores by index.
@@ -113,7 +117,7 @@ def _fixed_point(source: Tensor, target: Tensor, count: int) -> Tensor:
     batches between stop tests (rounds past the fixed point change nothing), and a test reads both
     counts at once, the second being the output's size.
     """
-    keep = torch.ones(count + 1, dtype=torch.int32, device=source.device)  # the last slot: a sink
+    keep = torch.ones(count + 1, dtype=torch.int32, device=source.device)  # the last slot: non-edges' targets
     previous = torch.empty_like(keep)
     hits = torch.zeros_like(keep)
     rounds = _ROUNDS_PER_TEST
@@ -182,7 +186,7 @@ def _candidate_pairs(boxes: Tensor, groups: Optional[Tensor], threshold: float) 
     x, y = cells.nan_to_num_().clamp_(-_CELL_LIMIT, _CELL_LIMIT).unbind(2)
     key = torch.add(y, torch.add(x, octaves, alpha=_CELL_SPAN), alpha=_CELL_SPAN).long()
     if groups is not None:  # group labels modulo 2^10: equal groups share the field, few others do
-        key += (groups[:, None] & _GROUP_MASK) << _GROUP_SHIFT
+        key += (groups[:, None].long() & _GROUP_MASK) << _GROUP_SHIFT
     build_key = key[:, 0].masked_fill(unusable, _NO_BOX)  # unusable boxes' queries find only usable ones
     # The 3 x 3 cells around: key fields are linear and y the lowest, so the cells (x + dx, y - 1 ..
     # y + 1) are the key range (key + dx span - 1 .. key + dx span + 1).
@@ -199,8 +203,9 @@ def _candidate_pairs(boxes: Tensor, groups: Optional[Tensor], threshold: float) 
     run_end = torch.repeat_interleave(last - torch.cumsum(matches, 0), matches, output_size=total)
     j = order[run_end + torch.arange(total, device=device)]
     i = torch.repeat_interleave(query_box, matches, output_size=total)
-    # Pairs of one octave are found twice (an edge twice changes nothing), a box pairs with itself;
-    # keys equal by collision (clamped cells, group labels) add pairs the IoU test drops.
+    # Pairs of one octave are found twice (an edge twice changes nothing) and each box pairs with
+    # itself (the edge test drops those); keys equal by collision (clamped cells, group labels)
+    # add pairs the IoU test drops.
     return torch.minimum(i, j), torch.maximum(i, j)
 
 
