@@ -101,9 +101,9 @@ class FastRCNNOutputLayers(nn.Module):
     ) -> list[Instances]:
         """Per image: decode every class's box, keep scores > ``score_thresh``, per-class NMS, top-k.
 
-        All images in one NMS call, grouped by (image, class): two host reads (the candidates, the
-        detections per image) whatever the batch size. Returns Instances with ``pred_boxes``,
-        ``scores``, ``pred_classes``.
+        All images in one NMS call, grouped by (image, class), so the host reads (the candidates,
+        NMS's own, the detections per image) do not grow with the batch. Returns Instances with
+        ``pred_boxes``, ``scores``, ``pred_classes``.
         """
         if not proposals:
             return []
