@@ -197,3 +197,13 @@ def test_kept_by_image_orders_each_image_as_if_alone():
     image = torch.tensor([1, 0, 1, 2, 0, 1])
     kept = torch.tensor([5, 1, 0, 4, 2])  # in decreasing score order over all images
     assert [k.tolist() for k in NMS.kept_by_image(kept, image, 4)] == [[1, 4], [5, 0, 2], [], []]
+
+
+def test_candidates_beyond_a_chunk_are_tested_in_chunks_and_iterated_as_edges(monkeypatch):
+    generator = torch.Generator().manual_seed(6)
+    boxes = random_boxes(generator, 400, spread=30.0, dtype=torch.float32)
+    scores = torch.randint(0, 6, (400,), generator=generator).float()
+    groups = torch.randint(0, 3, (400,), generator=generator)
+    expected = pure_nms(boxes, scores, 0.5, groups)
+    monkeypatch.setattr(NMS, "_CHUNK_ELEMENTS", 257)  # many chunks
+    assert pure_nms(boxes, scores, 0.5, groups) == expected == compiled_nms(boxes, scores, 0.5, groups)

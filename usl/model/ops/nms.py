@@ -16,7 +16,8 @@
   detector's clusters settle within the first batch of rounds (8). Two host reads per call,
   whatever the number of boxes and groups: the number of candidate pairs, and one stop test per
   batch of rounds (a chain of suppressions longer than a batch takes more, each batch twice the
-  last), whose count of kept boxes sizes the output.
+  last), whose count of kept boxes sizes the output. Beyond 4M candidate pairs (where the IoUs
+  are computed in chunks) one more read selects the edges, which the rounds then iterate over.
 
 Every path compares IoUs with the threshold as a real number (as torchvision does) and ranks
 equal scores by index.
@@ -105,6 +106,9 @@ def _greedy(boxes: Tensor, groups: Optional[Tensor], threshold: float) -> Tensor
     if count < 2:
         return torch.arange(count, device=boxes.device)
     source, target = _suppression_edges(boxes, groups, threshold)
+    if source.numel() > _CHUNK_ELEMENTS:  # the rounds' work is the candidates': beyond a chunk, keep the edges
+        edges = torch.nonzero(target < count).squeeze(1)
+        source, target = source[edges], target[edges]
     return _fixed_point(source, target, count)
 
 
