@@ -20,19 +20,20 @@ RUN=$OUT/train
 EVAL=$OUT/eval
 mkdir -p "$OUT"
 start=$(date +%s)
+stage() { echo "== $* ($(( $(date +%s) - start )) s in)"; }  # each stage's start, for the time it takes
 
 source scripts/lib/scene_shapes_builds.sh
-echo "== 1/4 build Scene-Shapes ($DATA) and held-out builds with seeds ${HELDOUT_SEEDS[*]} ($OUT/heldout/seed*)"
+stage "1/4 build Scene-Shapes ($DATA) and held-out builds with seeds ${HELDOUT_SEEDS[*]} ($OUT/heldout/seed*)"
 build_scene_shapes "$DATA" 0 60
 heldout_builds "$OUT"
 
-echo "== 2/4 validate and summarise"
+stage "2/4 validate and summarise"
 for build in "$DATA" "${HELDOUT_SEEDS[@]/#/$OUT/heldout/seed}"; do
   usl-records validate "$build"
 done
 usl-records info "$DATA" --sheet "$OUT/contact_sheet.png"
 
-echo "== 3/4 train the $CONFIG recipe on CPU"
+stage "3/4 train the $CONFIG recipe on CPU"
 # One process per core (DDP over gloo) on 2+ cores, each with half of the recipe's batch: the
 # same batches as one process, ~1.4x the iterations per second. USL_MAIN_PROCS=1 forces one.
 source scripts/lib/train_procs.sh
@@ -52,7 +53,7 @@ else
   train_with_procs "$PROCS" --config "$CONFIG" --out "$RUN" data.root="$DATA"
 fi
 
-echo "== 4/4 evaluate on every input view of the held-out builds against the baselines"
+stage "4/4 evaluate on every input view of the held-out builds against the baselines"
 # the diagnostic rows (USL's layout with spheres, and with its own detections) on the first build only
 evaluate_heldout "$OUT" "$RUN" "$EVAL" random,fixed,model layout_only,detections 6
 echo "main job done in $(( $(date +%s) - start )) s: report in $EVAL/table.md, pictures in $EVAL/seed${HELDOUT_SEEDS[0]}/pictures/"
