@@ -29,8 +29,8 @@ if ! $PY -c 'import torch' 2>/dev/null; then
   $PY -m pip install -q --root-user-action=ignore torch==2.13.0
 fi
 # The extras are the tests' (pytest, pandas, datasets, ruff, TensorBoard, Ray): on a fresh machine
-# they nearly double the set-up's time (torch and usl: about 95 s without them, 180 s with them,
-# measured with pip's cache off), time the main job spends training instead.
+# they add half again to the install of torch and usl (pip's cache off: 42 s without them, 63 s
+# with them on an idle 2-core host; 95 s and 180 s on a busy one), time the main job trains instead.
 EXTRAS=""
 ((TESTS)) && EXTRAS="[test,ray]"
 echo "[setup] installing usl (editable) and its dependencies${EXTRAS:+ with the extras $EXTRAS}"
