@@ -163,6 +163,26 @@ def test_bce_diagnostics_leave_out_the_log_clamp_and_count_unreached_true_pixels
     assert (out.loss > out.loss_reached).all()  # the clamp mass is in the plain l_xent only
 
 
+def test_bce_diagnostics_take_summed_area_rounding_for_exact_coverage():
+    """Window cells the mask does not reach get coverage ~1e-14 from the summed-area table's float64
+    rounding (which cells, depends on the CPU's vector unit): cells with no face there are not
+    clamped, and a mask cell's coverage 1 - 1e-14 under soft == 1 is not either."""
+    soft = torch.full((1, 4, 4), 0.5, dtype=DT)
+    soft[0, 0] = 0.0  # no face reaches the top row
+    soft[0, 1, 0] = 1.0
+    exact = torch.zeros(1, 4, 4, dtype=DT)
+    exact[0, 1, 0] = 1.0
+    rounded = exact.clone()
+    rounded[0, 0] = 1e-14
+    rounded[0, 1, 0] = 1 - 1e-14
+    exact_out, rounded_out = silhouette_bce_loss(soft, exact), silhouette_bce_loss(soft, rounded)
+    assert rounded_out.loss_reached.item() == pytest.approx(exact_out.loss_reached.item(), rel=1e-9)
+    assert exact_out.loss_reached.item() == pytest.approx(math.log(2) * 11 / 16, rel=1e-9)  # all 16 kept
+    real = exact.clone()
+    real[0, 0, 0] = 1e-3  # a real sliver of mask under no face is clamped: one cell left out
+    assert silhouette_bce_loss(soft, real).loss_reached.item() == pytest.approx(math.log(2) * 11 / 15, rel=1e-9)
+
+
 def test_soft_iou_of_binary_silhouettes_is_pycocotools_iou_and_its_gradient_is_exact():
     """On 0/1 silhouettes 1 - soft_iou_loss is the masks' IoU (pycocotools' on RLE, restricted to the
     valid cells by zeroing the others in both); on soft values its gradient matches finite differences."""

@@ -1,3 +1,5 @@
+import statistics
+
 import pytest
 import torch
 
@@ -92,7 +94,8 @@ def test_overfits_tiny_synthetic_dataset():
         optimizer.step()
         totals.append(loss.item())
     assert all(torch.isfinite(torch.tensor(totals)))
-    assert sum(totals[-5:]) < 0.3 * sum(totals[:5])
+    # medians: Adam at a constant rate spikes now and then (where depends on the CPU's rounding)
+    assert statistics.median(totals[-10:]) < 0.3 * statistics.median(totals[:5]), totals
     with torch.no_grad():
         recall, mask_iou = recall_and_mask_iou(detector.eval()(images), targets)
     assert chance_recall < 0.5 and chance_iou < 0.3

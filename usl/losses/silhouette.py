@@ -19,6 +19,9 @@ Tensor = torch.Tensor
 # upper-triangular K) are dropped: behind the camera they have no image, and just in front
 # of it they land arbitrarily far away and would swamp the loss.
 DEFAULT_MIN_DEPTH = 1e-2
+# Mask coverage this close to 0 or 1 counts as exactly 0 or 1 in the l_xent diagnostics: far above
+# the rounding of ``usl.render.resample``'s float64 summed-area differences, far below a pixel's share.
+COVERAGE_ROUNDING = 1e-9
 
 
 def sample_mask_points(
@@ -163,7 +166,9 @@ def silhouette_bce_loss(
         inter = (pred_fg & true_fg).sum(dim=1)
         union = (pred_fg | true_fg).sum(dim=1)
         iou = torch.where(union > 0, inter / union.clamp(min=1), 0.0).to(soft.dtype)
-        clamped = ((soft == 0) & (target > 0)) | ((soft == 1) & (target < 1))
+        # coverage within COVERAGE_ROUNDING of 0 or 1 is the summed-area table's float64 rounding
+        # (~1e-14, depending on the CPU's vector unit), not a mask pixel: it costs nothing clamped
+        clamped = ((soft == 0) & (target > COVERAGE_ROUNDING)) | ((soft == 1) & (target < 1 - COVERAGE_ROUNDING))
         kept = weight * (~clamped).flatten(1)
         loss_reached = (per_cell.flatten(1) * kept).sum(1) / kept.sum(1).clamp(min=1)
         true_cells = target.flatten(1) * weight

@@ -200,7 +200,7 @@ def _gather_pairs(
         parts["true_lengths"].append(true_lengths)
         parts["masks"].append(masks)
         if cfg.ignore_occluders:
-            parts["occluders"].append(_occluders(sample))
+            parts["occluders"].append(_occluders(sample, masks))
         pair_rows += [(start + o, len(poses) + j, index, j == 0) for j in range(num_views) for o in range(num_objects)]
         input_views += [len(poses)] * num_views
         poses += [view.cam_to_world for view in sample.views]
@@ -234,11 +234,13 @@ def _view_masks(sample: MultiViewSample) -> Tensor | list[Tensor]:
     return [mask for view in sample.views for mask in view.masks]
 
 
-def _occluders(sample: MultiViewSample) -> Tensor | list[Tensor]:
-    """Each pair's pixels of the other objects in that view."""
+def _occluders(sample: MultiViewSample, masks: Tensor | list[Tensor]) -> Tensor | list[Tensor]:
+    """Each pair's pixels of the other objects in that view, from the sample's ``_view_masks``: a few
+    ops for all of its views when they share a size."""
+    if isinstance(masks, Tensor):
+        by_view = masks.unflatten(0, (len(sample.views), -1))  # (N, M, H, W)
+        return (by_view.any(dim=1, keepdim=True) & ~by_view).flatten(0, 1)
     blocks = [view.masks.any(dim=0, keepdim=True) & ~view.masks for view in sample.views]
-    if len({view.size for view in sample.views}) == 1:
-        return torch.cat(blocks)
     return [mask for block in blocks for mask in block]
 
 
