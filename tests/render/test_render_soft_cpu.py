@@ -1,6 +1,7 @@
 """The soft rasterizer's compiled CPU path against its torch path (the oracle, which CUDA runs) and
 the dense reference: the same pairs, and the same silhouettes and gradients."""
 
+import contextlib
 from dataclasses import replace
 
 import numpy as np
@@ -12,6 +13,7 @@ from tests.render.render_oracle import intrinsics
 from tests.render.test_render_soft import pack
 from usl.render import SoftRasterSettings, rasterize_soft, rasterize_soft_dense, soft_cpu
 from usl.utils import compiled
+from usl.utils.compiled import torch_paths_only
 from usl.render.screen import ndc_scale, project_faces
 from usl.render.soft import _select_pairs
 
@@ -65,7 +67,7 @@ def test_compiled_selection_keeps_the_torch_paths_pairs_in_its_order(faces_per_p
 
 @pytest.mark.parametrize("faces_per_pixel", [10, 2, None])
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
-def test_compiled_path_equals_the_torch_path_and_the_dense_reference(faces_per_pixel, dtype, monkeypatch):
+def test_compiled_path_equals_the_torch_path_and_the_dense_reference(faces_per_pixel, dtype):
     verts, faces, window, K = crowded_scene(dtype)
     settings = SoftRasterSettings(sigma=1e-3, blur_radius=3e-3, faces_per_pixel=faces_per_pixel)
     weights = torch.rand(4, HEIGHT, WIDTH, generator=torch.Generator().manual_seed(0), dtype=dtype)
@@ -78,8 +80,7 @@ def test_compiled_path_equals_the_torch_path_and_the_dense_reference(faces_per_p
 
     compiled, compiled_grad = image_and_gradient(rasterize_soft)
     dense, dense_grad = image_and_gradient(rasterize_soft_dense)
-    with monkeypatch.context() as patch:
-        patch.setattr(soft_cpu, "available", lambda table: False)
+    with torch_paths_only():
         torch_path, torch_grad = image_and_gradient(rasterize_soft)
     assert dense.amax() > 0.9 and (dense > 0.01).sum() > 1000 and compiled[3].abs().max() == 0
     assert torch_grad.abs().max() > 1.0
@@ -122,8 +123,7 @@ def test_exact_ties_between_edge_distances_share_the_gradient_as_torch_minimum_d
     assert (edges_share == 2).any(), "the scene no longer has a pixel exactly as far from two edges"
     grads = []
     for use_compiled in (True, False):
-        with monkeypatch.context() as patch:
-            patch.setattr(soft_cpu, "available", lambda table, on=use_compiled: on)
+        with monkeypatch.context() as patch, contextlib.nullcontext() if use_compiled else torch_paths_only():
             plane = screen.plane.detach().clone().requires_grad_(True)
             screen_copy = type(screen)(screen.xy, plane, screen.depths, screen.visible)
             patch.setattr("usl.render.soft.project_faces", lambda *args: screen_copy)

@@ -33,6 +33,7 @@ import torch
 import torch.nn.functional as F
 from torch.utils.checkpoint import checkpoint
 
+import usl.render.face_tables as face_tables
 import usl.render.soft_cpu as soft_cpu
 from usl.render.screen import (
     DEFAULT_CHUNK_SIZE,
@@ -115,7 +116,7 @@ def rasterize_soft(
     screen = project_faces(verts, faces, face_window, K, settings.near)
     scale = ndc_scale(height, width) ** 2 / settings.sigma
     num_pixels = num_windows * height * width
-    if soft_cpu.available(screen.plane):
+    if face_tables.available(screen.plane):
         pairs = soft_cpu.select_pairs(screen, face_window, num_windows, height, width, settings)
         log_transparency = soft_cpu.LogTransparency.apply(screen.plane, pairs, num_pixels, scale)
     else:

@@ -27,12 +27,11 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from usl.render.face_tables import NUMPY_DTYPES, available, box_table, centres, face_row, face_table
+from usl.render.face_tables import NUMPY_DTYPES, box_table, centres, face_row, face_table
 from usl.render.screen import ScreenFaces, blur_margin_pixels, face_pixel_boxes, ndc_scale
 from usl.utils.compiled import compiled
 
 Tensor = torch.Tensor
-__all__ = ["LogTransparency", "Pairs", "available", "select_pairs"]
 
 
 @dataclass
