@@ -1,6 +1,6 @@
 """Ops and host syncs of one ``usl-train`` step: what grows with objects and views, and where.
 
-    python scripts/bench/count_ops.py --config tiny                         # 4 images x 2 objects x 3 views, 128²
+    python scripts/bench/count_ops.py --config tiny --batch-size 4          # 4 images x 2 objects x 3 views, 128² (the budget's shape)
     python scripts/bench/count_ops.py --config hypersim --size 192 256 --objects 20   # 2 images x 20 x 5
     python scripts/bench/count_ops.py --config tiny --data /data/scene_shapes_small  # real records
     python scripts/bench/count_ops.py --config tiny --cpu-steps 20         # and CPU seconds per step

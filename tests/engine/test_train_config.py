@@ -171,7 +171,7 @@ def test_list_keys_shows_every_key_with_type_value_and_doc(capsys):
     keys = [k for k in iter_keys(load_config("tiny"))]
     assert [line.split()[0] for line in lines] == [k.key for k in keys]
     by_key = {line.split()[0]: line for line in lines}
-    assert by_key["optim.lr"].split()[1:4] == ["float", "0.001", "base"]  # tiny's value, not the default 0.01
+    assert by_key["optim.lr"].split()[1:4] == ["float", "0.0014", "base"]  # tiny's value, not the default 0.01
     assert (
         by_key["model.shape.sampler"].split()[1:3] == ["str", "roimap"]
         and "Mesh R-CNN" in by_key["model.shape.sampler"]
