@@ -5,7 +5,7 @@
 #   the paper's baselines on every input view of the held-out builds -> report (Markdown table of
 #   mean ± std over the builds, JSON, pictures).
 # Re-running resumes every stage (the builds keep finished shards, training continues from its
-# last checkpoint). Recipe: $USL_MAIN_CONFIG (default tiny; tiny_long trains 8,000 iterations,
+# last checkpoint). Recipe: $USL_MAIN_CONFIG (default tiny; tiny_long trains 5,000 iterations,
 # about 25 minutes or more of a 2-core CPU). Output folder: $USL_MAIN_OUT (default runs/main for
 # tiny, runs/main_RECIPE for another, so that no run resumes under another recipe's name).
 set -euo pipefail

@@ -10,7 +10,7 @@
 #
 # Environment: USL_EXP_DIR (default runs/experiments), USL_EXP_CONFIG (default tiny),
 # USL_EXP_TRAIN_SCENES (scenes and models of the training build, default 60 as the main job),
-# USL_EXP_PROCS (training processes, default 1; 2 trains like the main job: DDP, 2 images each).
+# USL_EXP_PROCS (training processes, default 1; 2 trains like the main job: DDP, half the batch each).
 # The main job's training: USL_EXP_PROCS=2 bash scripts/experiments/recipe_experiment.sh ...
 # Writes $USL_EXP_DIR/NAME/{train,eval}; prints the held-out table and the training CPU time.
 set -euo pipefail
