@@ -1,5 +1,5 @@
 """Shared synthetic ScanNet inputs: one scan written as .sens and as exported folders, with detections
-and ScanNet label images, plus the official split files. Built once per test session."""
+and ScanNet label images, plus the official split files. Built once per test run."""
 
 from __future__ import annotations
 

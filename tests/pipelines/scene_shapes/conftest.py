@@ -1,4 +1,4 @@
-"""A tiny Scene-Shapes dataset built once per session through the real CLI."""
+"""A tiny Scene-Shapes dataset built once per test run through the real CLI."""
 
 from pathlib import Path
 
