@@ -214,7 +214,7 @@ def test_clipping_caps_the_step_and_the_log_shows_when(records, tmp_path):
         before = [p.detach().clone() for p in trainer.step.params]
         values = trainer.step(batch)
         moved[name] = torch.cat([(p.detach() - b).flatten() for p, b in zip(trainer.step.params, before)]).norm().item()
-        norms[name] = values["grad_norm"]
+        norms[name] = values["grad_norm"].item()  # the step hands back 0-d tensors (no device read per step)
         assert values["clipped"] == (1.0 if name == "capped" else 0.0)
     assert norms["capped"] == pytest.approx(norms["free"], rel=1e-5)  # the same model, batch and gradient
     assert moved["free"] == pytest.approx(1e-3 * norms["free"], rel=1e-3)
@@ -242,10 +242,12 @@ def test_meter_keeps_the_largest_finite_gradient_norm_of_its_interval():
     (``skipped`` counts it), in either order."""
     for norms in ([3.0, 400.0, float("nan"), 5.0], [float("inf"), 3.0, 400.0, 5.0]):
         meter = Meter()
-        for norm in norms:
-            meter.add({"grad_norm": norm, "loss": 1.0})
+        for norm in norms:  # as a step hands them in: 0-d tensors, and plain numbers from a skipped step
+            meter.add({"grad_norm": torch.tensor(norm), "loss": 1.0})
         summary = meter.means()
         assert summary["grad_norm_max"] == 400.0 and summary["loss"] == 1.0
+        # what metrics.csv, log.txt and TensorBoard receive: Python floats, never tensors
+        assert all(type(v) is float for v in summary.values()), summary
 
 
 def test_model_api_for_the_evaluator(records, tmp_path):
