@@ -6,8 +6,17 @@ from pathlib import Path
 import pytest
 import torch
 
+from pipelines.scene_shapes.render import load_triton_before_mesa
 from tests.data.synthetic_records import build_synthetic_records
 from tests.faults.tally import pytest_sessionfinish, pytest_terminal_summary, pytest_testnodedown  # noqa: F401
+
+
+def pytest_configure(config):
+    """Tests render with pyrender (oracles, Scene-Shapes builds) and train in the same worker
+    process: with a CUDA build of torch, triton must be loaded before Mesa's EGL (see
+    ``load_triton_before_mesa``), or the first test that reaches ``torch._dynamo`` after a rendering
+    test crashes its worker."""
+    load_triton_before_mesa()
 
 
 @pytest.fixture(autouse=True)

@@ -11,6 +11,7 @@ depth always agree. The background (a plain colour, optionally with the analytic
 from __future__ import annotations
 
 import colorsys
+import importlib.util
 import os
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
@@ -46,9 +47,21 @@ def _egl_error(exc: BaseException) -> UslError:
     return UslError(EGL_HELP.format(error=f"{type(exc).__name__}: {exc}".strip()))
 
 
+def load_triton_before_mesa() -> None:
+    """Load triton now if it is installed, before an EGL context exists. Mesa's software EGL
+    (llvmpipe) loads the system's libLLVM; a CUDA build of torch ships triton with an LLVM of its
+    own, and loading triton after Mesa's LLVM crashes the process (a segmentation fault in the
+    dynamic loader). torch imports triton lazily (``torch.compile``, ``torch._dynamo``, the fused
+    optimizers), so one process that renders with pyrender and later trains would crash at its
+    first optimizer step. In the other order both work. Costs about 0.1 s where triton exists."""
+    if importlib.util.find_spec("triton") is not None:
+        import triton  # noqa: F401
+
+
 def _pyrender():
     """pyrender, imported on first use: without a usable libEGL/libGL its import already fails,
     and that must become the one-line hint rather than a traceback at CLI start-up."""
+    load_triton_before_mesa()
     try:
         import pyrender
     except Exception as exc:  # ImportError, or OpenGL platform errors of several types
