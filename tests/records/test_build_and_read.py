@@ -9,6 +9,8 @@ import numpy as np
 import pytest
 from torch.utils.data import DataLoader
 
+from usl.data.loader import worker_start_method
+
 from tests.records.fake_scenes import SPEC, build_fake_scene
 from tests.records.old_writer import write_old_file
 from pipelines.common import BuildOptions, ShardPlan, run_build
@@ -105,7 +107,8 @@ def test_no_duplicates_or_losses_across_workers_and_ranks(tmp_path):
     seen = []
     for rank in range(2):
         stream = SceneStream(ds, rank=rank, world_size=2, shuffle=True, seed=3, columns=["scene_id", "view_id"])
-        loader = DataLoader(stream, batch_size=None, num_workers=2)
+        # workers start as training's do: never by fork (the stream travels to them pickled)
+        loader = DataLoader(stream, batch_size=None, num_workers=2, multiprocessing_context=worker_start_method())
         seen += [scene_id for scene_id, rows in loader if all(r["scene_id"] == scene_id for r in rows)]
     assert sorted(seen) == sorted(ds.scene_ids)
 

@@ -8,6 +8,7 @@ epoch's permutation covers it), which keeps the number of steps equal on all ran
 
 from __future__ import annotations
 
+import multiprocessing
 from typing import Iterator
 
 import torch
@@ -57,10 +58,20 @@ def _worker_init(_: int) -> None:
     torch.set_num_threads(1)  # workers decode PNGs and RLE; keep cores for the main process
 
 
+def worker_start_method() -> str:
+    """How loader workers start: never by ``fork``. The training process is multi-threaded (torch's
+    and OpenMP's pools, gloo), and a forked child inherits their locks in whatever state they were:
+    with CUDA builds of torch on Python 3.13 such a child crashed on its first lazy import
+    (``torch._dynamo`` and triton, pulled in by the fused Adam optimizer). ``forkserver`` forks from
+    a clean single-threaded server; where it does not exist (Windows), ``spawn``."""
+    return "forkserver" if "forkserver" in multiprocessing.get_all_start_methods() else "spawn"
+
+
 def build_train_loader(
     dataset: MultiViewDataset, sampler: ShardedBatchSampler, num_workers: int, pin_memory: bool = False
 ) -> DataLoader:
-    """``pin_memory`` (for a CUDA run): batches arrive page-locked, so their copy to the device overlaps."""
+    """``pin_memory`` (for a CUDA run): batches arrive page-locked, so their copy to the device overlaps.
+    Workers start once (``persistent_workers``): each starts a fresh interpreter that imports torch."""
     return DataLoader(
         dataset,
         batch_sampler=sampler,
@@ -68,6 +79,8 @@ def build_train_loader(
         collate_fn=collate_samples,
         pin_memory=pin_memory,
         worker_init_fn=_worker_init if num_workers else None,
+        multiprocessing_context=worker_start_method() if num_workers else None,
+        persistent_workers=num_workers > 0,
         # Its own generator: creating an iterator must not draw from the global RNG, or a resumed
         # run (new iterator mid-epoch) would continue with different random numbers.
         generator=torch.Generator().manual_seed(0),
