@@ -17,6 +17,7 @@ import pytest
 import torch
 
 from tests.data.synthetic_records import build_synthetic_records
+from tests.engine.test_train import FAST
 
 from usl.engine.checkpoint import load_model, read_checkpoint
 from usl.engine.run_log import read_metrics
@@ -24,15 +25,9 @@ from usl.engine.run_log import read_metrics
 REPO = Path(__file__).parents[2]
 DOCS = REPO / "docs" / "getting_started.md"
 MODULE = ["-m", "usl.cli.train"]
-NODE_TIMEOUT_S = 90  # each node; the run itself takes about 10 s on two busy cores
+NODE_TIMEOUT_S = 120  # for both nodes to finish: they take 15-35 s on two busy cores
 SIZES = [  # the smallest recipe, shrunk: 4 iterations of 2 images per process
-    "train.cpu_threads=1",
-    "data.max_size=0",
-    "data.num_views=2",
-    "loss.mesh_points=100",
-    "loss.mask_points=100",
-    "loss.render.resolution=16",
-    "model.shape.num_stages=1",
+    *FAST,
     "train.batch_size=2",
     "optim.max_iter=4",
     "train.log_every=2",
@@ -65,7 +60,11 @@ def node_command(endpoint: str, rdzv_id: str, out: Path, records: Path) -> list[
     }, launcher
     assert flags["--nnodes"] == "2" and flags["--rdzv_backend"] == "c10d"
     flags.update({"--nproc_per_node": "1", "--rdzv_endpoint": endpoint, "--rdzv_id": rdzv_id})
-    assert [training[0], training[2], training[4].split("=")[0]] == ["--config", "--out", "data.root"], training
+    assert len(training) == 5 and [training[0], training[2], training[4].split("=")[0]] == [
+        "--config",
+        "--out",
+        "data.root",
+    ], training
     training = ["--config", "tiny", "--out", str(out), f"data.root={records}", *SIZES]
     # torchrun is the console script of torch.distributed.run; this interpreter's, whatever PATH holds
     return [sys.executable, "-m", "torch.distributed.run", *[w for f in flags.items() for w in f], *MODULE, *training]

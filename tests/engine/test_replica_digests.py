@@ -37,7 +37,7 @@ def _rank(rank: int, port: int, out: str) -> None:
 
 
 def test_equal_replicas_give_every_rank_the_same_digests_and_drifted_ones_stop_both(tmp_path):
-    with socket.socket() as s:
+    with socket.socket() as s:  # a free port (the spawned processes import this module: keep it light)
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
     mp.start_processes(_rank, args=(port, str(tmp_path)), nprocs=2, start_method="spawn")
