@@ -28,6 +28,7 @@ MODULE = ["-m", "usl.cli.train"]
 NODE_TIMEOUT_S = 120  # for both nodes to finish: they take 15-35 s on two busy cores
 SIZES = [  # the smallest recipe, shrunk: 4 iterations of 2 images per process
     *FAST,
+    "train.device=cpu",  # gloo: on a one-GPU host both nodes would otherwise take GPU 0 (each is alone on its node)
     "train.batch_size=2",
     "optim.max_iter=4",
     "train.log_every=2",
