@@ -13,7 +13,7 @@
 # shape models, other scenes) in $HELDOUT = DATA/heldout_seed1. Every split of the held-out build
 # is unseen; score its train split, the largest.
 
-cores() { env -u OMP_NUM_THREADS -u OMP_THREAD_LIMIT nproc; }  # GNU nproc obeys OMP_NUM_THREADS
+source "$(dirname "${BASH_SOURCE[0]}")/cores.sh"
 
 build_scene_shapes() {  # OUT SEED SCENES [builder options]
   local out=$1 seed=$2 scenes=$3

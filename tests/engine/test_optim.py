@@ -6,7 +6,7 @@ from torch import nn
 
 from usl.config import ConfigError, load_config
 from usl.engine.config import OptimConfig
-from usl.engine.optim import build_optimizer, build_scheduler
+from usl.engine.optim import build_optimizer, build_scheduler, lay_out_state_like_params
 
 
 def _net() -> nn.Module:
@@ -49,3 +49,36 @@ def test_lr_mult_errors_name_the_bad_entry():
     cfg = load_config("tiny", ["optim.lr_mult={shape_head: 10}"])  # merged into the recipe's factors
     assert cfg.optim.lr_mult == {"shape_head.global_mlp": 0.1, "shape_head": 10.0}
     assert load_config("tiny", ["optim.lr_mult={}"]).optim.lr_mult == {}  # an empty mapping clears them
+
+
+@pytest.mark.parametrize("name", ["adam", "sgd"])
+def test_loaded_state_takes_its_parameters_layout_so_the_fused_step_pairs_the_right_elements(name):
+    """A channels-last weight resumed from a checkpoint whose state is NCHW (written before its weights
+    were channels-last, or on CUDA): after ``lay_out_state_like_params`` the fused step equals the
+    per-element (foreach) step on NCHW tensors. Without it the fused kernel pairs other elements."""
+    torch.manual_seed(0)
+    weight, grad = torch.randn(4, 3, 3, 3), torch.randn(4, 3, 3, 3)
+    cfg = OptimConfig(name=name, lr=0.1, momentum=0.9, weight_decay=0.0)
+
+    def stepped_twice(fused_layout: bool) -> torch.Tensor:
+        layout = torch.channels_last if fused_layout else torch.contiguous_format
+        param = nn.Parameter(weight.clone().contiguous(memory_format=layout))
+        if fused_layout:
+            optimizer = build_optimizer([("w", param)], cfg)
+        else:
+            kind = torch.optim.Adam if name == "adam" else torch.optim.SGD
+            optimizer = kind([param], lr=0.1, **({"momentum": 0.9} if name == "sgd" else {}), foreach=True)
+        param.grad = grad.clone().contiguous(memory_format=layout)
+        optimizer.step()
+        saved = optimizer.state_dict()
+        for state in saved["state"].values():  # as a checkpoint written with NCHW weights holds it
+            state.update({k: v.contiguous() for k, v in state.items() if v.dim() == 4})
+        optimizer.load_state_dict(saved)
+        if fused_layout:
+            lay_out_state_like_params(optimizer)
+            assert all(v.stride() == param.stride() for v in optimizer.state[param].values() if v.dim() == 4)
+        param.grad = (2 * grad).contiguous(memory_format=layout)
+        optimizer.step()
+        return param.detach()
+
+    torch.testing.assert_close(stepped_twice(True), stepped_twice(False))

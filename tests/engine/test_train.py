@@ -3,6 +3,7 @@
 import os
 import subprocess
 import sys
+import warnings
 from dataclasses import replace
 from pathlib import Path
 
@@ -70,7 +71,8 @@ def test_resume_reproduces_the_uninterrupted_run(records, tmp_path):
 
 def test_training_feedback_files(records, tmp_path, monkeypatch, capsys):
     """log.txt, validation.csv, curves.png and the summary of a 4-iteration run started with a
-    relative data.root (saved absolute, so the run resumes from anywhere)."""
+    relative data.root (saved absolute, so the run resumes from anywhere); and no warning on the
+    way: none of usl's, and none of a library's that Python's default filters would show a user."""
     monkeypatch.chdir(records.parent)
     out = tmp_path / "fb"
     argv = [
@@ -87,7 +89,12 @@ def test_training_feedback_files(records, tmp_path, monkeypatch, capsys):
         "val.period=2",
         "val.num_scenes=1",
     ]
-    assert main(argv) == 0
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        assert main(argv) == 0
+    hidden = (DeprecationWarning, PendingDeprecationWarning, ImportWarning, ResourceWarning)  # outside __main__
+    shown = [w for w in caught if not issubclass(w.category, hidden) or w.filename.startswith(str(REPO / "usl"))]
+    assert [f"{w.filename}:{w.lineno}: {w.category.__name__}: {w.message}" for w in shown] == []
     printed = capsys.readouterr().out
     cfg = load_config(out / "config.yaml")
     assert cfg.data.root == str(records.resolve())
@@ -170,6 +177,26 @@ def test_two_process_ddp_step_equals_one_process_on_the_combined_batch(records, 
     initial = USLModel(config.model, config.loss).state_dict()
     for prefix in ("layout_head.", "shape_head.", "detector.backbone.fpn."):
         assert any(not torch.equal(v, initial[k]) for k, v in one.items() if k.startswith(prefix)), prefix
+
+
+def test_every_gradient_arrives_in_its_parameters_layout(records, tmp_path):
+    """On the CPU the backbone's maps are channels-last, and so are their convolutions' weight
+    gradients: the trainer's model holds those weights channels-last too, so autograd keeps each
+    gradient as it comes and DDP's buckets (laid out like the parameters) take it stride for stride.
+    The oracle is autograd itself: the strides of the gradient each parameter's hook receives."""
+    cfg = load_config("tiny", [f"data.root={records}", *FAST, "train.batch_size=2"])
+    trainer = Trainer(cfg, tmp_path / "layout", DistInfo(0, 1, 0, torch.device("cpu")))
+    received = {}
+    for name, param in trainer.model.named_parameters():
+        if param.requires_grad:
+            param.register_hook(lambda grad, name=name: received.setdefault(name, grad.stride()) and None)
+    trainer.step(next(iter(trainer.loader)))
+    channels_last = [n for n, p in trainer.model.named_parameters() if p.dim() == 4 and not p.is_contiguous()]
+    assert any(n.startswith("detector.backbone.bottom_up.") for n in channels_last)
+    assert any(n.startswith("detector.proposal_generator.") for n in channels_last)
+    params = dict(trainer.model.named_parameters())
+    assert len(received) > 100
+    assert {n: s for n, s in received.items() if s != params[n].stride()} == {}
 
 
 def test_non_finite_loss_skips_the_step(records, tmp_path):

@@ -4,6 +4,8 @@
     usl-train --config hypersim --out runs/hs data.root=/data/hypersim \\
         model.init_weights=/weights/model_final_f10217.pkl
     torchrun --nproc_per_node 8 -m usl.cli.train --config hypersim data.root=...
+    torchrun --nnodes 2 --nproc_per_node 8 --rdzv_backend c10d --rdzv_endpoint HOST:PORT --rdzv_id ID \\
+        -m usl.cli.train --config hypersim data.root=...   # the same on each machine
     usl-train --resume --out runs/hs                    # continue exactly where it stopped
     usl-train --resume --out runs/hs optim.max_iter=90000
     usl-train --config hypersim --print-config          # the resolved config as YAML; nothing runs

@@ -3,7 +3,8 @@
 A checkpoint is a ``torch.save`` dict (loadable with ``weights_only=True``):
 ``format`` (int), ``config`` (the resolved ``usl.config.Config`` as a plain dict), ``model``
 (state dict of ``USLModel``), ``iteration``, and for resuming ``optimizer``, ``scheduler``,
-``scaler``, ``data`` ({epoch, batch}) and ``rng`` (one entry per rank).
+``scaler``, ``data`` ({epoch, batch}) and ``rng`` (one entry per rank); ``replica_sha256`` (one
+entry per rank: ``usl.engine.distributed.parameter_digest`` of its weights, equal in every rank).
 
 Consumers (evaluation, prediction) need only::
 

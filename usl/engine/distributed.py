@@ -2,12 +2,14 @@
 
 ``init_distributed`` reads torchrun's environment (RANK, WORLD_SIZE, LOCAL_RANK, LOCAL_WORLD_SIZE,
 MASTER_ADDR, MASTER_PORT), so the same command works on one machine or several
-(``torchrun --nnodes N --nproc_per_node G --rdzv_endpoint HOST:PORT -m usl.cli.train ...``).
+(``torchrun --nnodes N --nproc_per_node G --rdzv_backend c10d --rdzv_endpoint HOST:PORT --rdzv_id ID
+-m usl.cli.train ...`` on each machine: the c10d rendezvous numbers the machines as they join).
 NCCL on CUDA, gloo on CPU. Without torchrun it is a plain single process.
 """
 
 from __future__ import annotations
 
+import hashlib
 import os
 import sys
 from dataclasses import dataclass
@@ -108,3 +110,26 @@ def all_gather_objects(obj: Any) -> list[Any]:
     gathered: list[Any] = [None] * dist.get_world_size()
     dist.all_gather_object(gathered, obj)
     return gathered
+
+
+def parameter_digest(module: torch.nn.Module) -> str:
+    """SHA-256 of ``module``'s parameter names and values (in NCHW order, whatever their layout)."""
+    digest = hashlib.sha256()
+    for name, param in module.named_parameters():
+        digest.update(name.encode())
+        digest.update(param.detach().contiguous().reshape(-1).view(torch.uint8).cpu().numpy().tobytes())
+    return digest.hexdigest()
+
+
+def replica_digests(module: torch.nn.Module) -> list[str]:
+    """Every process's ``parameter_digest`` of its replica, in rank order; a ``UslError`` when they differ.
+
+    DDP keeps the replicas identical (the same start, averaged gradients, steps skipped together),
+    and a checkpoint holds process 0's weights as the model's: a replica that drifted away is a bug
+    to stop at, not one to train on. Every process gets the same list, so all of them stop together.
+    """
+    digests = all_gather_objects(parameter_digest(module))
+    drifted = [rank for rank, digest in enumerate(digests) if digest != digests[0]]
+    if drifted:
+        raise UslError(f"the weights of process(es) {drifted} differ from process 0's: the DDP replicas drifted apart")
+    return digests

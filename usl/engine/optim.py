@@ -34,6 +34,20 @@ def build_optimizer(named_params: Iterable[tuple[str, nn.Parameter]], cfg: Optim
     return torch.optim.SGD(param_groups, lr=cfg.lr, momentum=cfg.momentum, weight_decay=cfg.weight_decay, fused=True)
 
 
+def lay_out_state_like_params(optimizer: torch.optim.Optimizer) -> None:
+    """Give each per-element state tensor (Adam's moments, SGD's momentum) its parameter's strides.
+
+    The fused kernels walk a parameter, its gradient and its state as flat memory, so a state in
+    another layout pairs the wrong elements, silently. Loaded state keeps the layout it was saved
+    in: a checkpoint written where the parameter had another layout (channels-last weights on the
+    CPU, NCHW on CUDA: ``MaskRCNN.lay_out_weights_like_features``) would resume wrong without this.
+    """
+    for param, state in optimizer.state.items():
+        for key, value in state.items():
+            if isinstance(value, torch.Tensor) and value.shape == param.shape and value.stride() != param.stride():
+                state[key] = torch.empty_like(param, dtype=value.dtype).copy_(value)
+
+
 class LRFactor:
     """Linear warmup from ``warmup_factor`` to 1, then x ``gamma`` at each of ``steps`` ("step").
 

@@ -18,7 +18,7 @@ from usl.model.usl_model import USLModel
 from usl.records import RecordsDataset
 
 from .checkpoint import CheckpointError, rng_state, set_rng_state, write_run_checkpoint
-from .distributed import DistInfo, all_gather_objects, barrier
+from .distributed import DistInfo, all_gather_objects, barrier, replica_digests
 from .feedback import TrainingFeedback
 from .run_log import RunLog
 from .skip_guard import SkipGuard
@@ -146,6 +146,7 @@ class Trainer:
             "data": {"epoch": self.epoch, "batch": self.batch_in_epoch},
             "world_size": self.info.world_size,
             "rng": all_gather_objects(rng_state()),
+            "replica_sha256": replica_digests(self.model),  # checked equal: the model is every process's
         }
 
     def load_state(self, payload: dict[str, Any]) -> None:

@@ -20,7 +20,7 @@ from usl.model.usl_model import USLModel
 
 from .cpu_memory import retain_freed_memory
 from .distributed import DistInfo, all_reduce_min
-from .optim import build_optimizer, build_scheduler
+from .optim import build_optimizer, build_scheduler, lay_out_state_like_params
 
 AMP_DTYPES = {"bfloat16": torch.bfloat16, "float16": torch.float16}
 
@@ -33,6 +33,7 @@ class TrainStep:
         if cfg.train.retain_freed_memory and info.device.type == "cpu":
             retain_freed_memory()
         self.model = USLModel(cfg.model, cfg.loss).to(info.device)
+        self.model.detector.lay_out_weights_like_features(info.device)  # before DDP lays out its buckets
         self.net: torch.nn.Module = self.model
         if info.distributed:
             self.net = DistributedDataParallel(
@@ -59,6 +60,7 @@ class TrainStep:
     def load_state_dict(self, state: dict[str, Any]) -> None:
         self.model.load_state_dict(state["model"])
         self.optimizer.load_state_dict(state["optimizer"])
+        lay_out_state_like_params(self.optimizer)
         self.scheduler.load_state_dict(state["scheduler"])
         self.scaler.load_state_dict(state["scaler"])
         self.skipped_total.fill_(int(state.get("skipped_steps", 0)))

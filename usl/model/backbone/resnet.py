@@ -102,6 +102,11 @@ STAGES = ("layer1", "layer2", "layer3", "layer4")
 STAGE_OUTPUTS = {"c2": 4, "c3": 8, "c4": 16, "c5": 32}
 
 
+def channels_last_on(device: torch.device) -> bool:
+    """Whether the feature maps are channels-last (NHWC) on ``device``: on the CPU (``ResNet.features``)."""
+    return device.type == "cpu"
+
+
 class ResNet(nn.Module):
     """torchvision-compatible ResNet; :meth:`features` gives the C2..C5 maps for detection.
 
@@ -162,8 +167,9 @@ class ResNet(nn.Module):
 
         On the CPU the maps are channels-last (NHWC): oneDNN's convolutions, their backward and the
         stem's max-pool run faster in that layout (a ``tiny`` step's backbone ~15% less CPU), with
-        the same values to float rounding. CUDA keeps NCHW: the layout was measured on the CPU only."""
-        if x.device.type == "cpu":
+        the same values to float rounding. CUDA keeps NCHW: the layout was measured on the CPU only.
+        The convolutions' weights follow with ``MaskRCNN.lay_out_weights_like_features``."""
+        if channels_last_on(x.device):
             x = x.contiguous(memory_format=torch.channels_last)
         x = self.maxpool(self.relu(self.bn1(self.conv1(x))))
         outputs = {}

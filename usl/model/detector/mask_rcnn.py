@@ -8,6 +8,7 @@ import torch
 from torch import nn
 
 from ..backbone import build_backbone
+from ..backbone.resnet import channels_last_on
 from .config import DetectorConfig
 from .roi_heads import build_roi_heads
 from .rpn import RPN
@@ -38,6 +39,18 @@ class MaskRCNN(nn.Module):
         shapes = self.backbone.output_shape()
         self.proposal_generator = RPN(self.cfg.rpn, shapes)
         self.roi_heads = build_roi_heads(self.cfg.roi_heads, num_classes, shapes)
+
+    def lay_out_weights_like_features(self, device: torch.device) -> None:
+        """Hold the weights of the convolutions that read the feature maps (the backbone's and the RPN
+        head's) in the maps' layout on ``device``: channels-last on the CPU.
+
+        A convolution's weight gradient comes out in its input's layout. In the weight's own layout
+        autograd keeps it as it is (in another, it copies it into the weight's layout every step),
+        and DDP's gradient buckets, laid out like the weights, take it stride for stride (otherwise
+        DDP warns "Grad strides do not match bucket view strides"). Call it before wrapping in DDP."""
+        if channels_last_on(device):
+            self.backbone.to(memory_format=torch.channels_last)
+            self.proposal_generator.to(memory_format=torch.channels_last)
 
     def preprocess(self, images: Tensor, image_sizes: Optional[Sequence[tuple[int, int]]] = None) -> ImageList:
         """Pad normalised images (N, 3, H, W) so every feature map aligns."""

@@ -1,0 +1,136 @@
+"""The multi-machine command of docs/getting_started.md §3, run as two torchrun nodes on this host:
+they train one model (one run folder, written once; the same weights in both processes) and print
+no warning."""
+
+import hashlib
+import os
+import shlex
+import signal
+import socket
+import subprocess
+import sys
+import time
+import uuid
+from pathlib import Path
+
+import pytest
+import torch
+
+from tests.data.synthetic_records import build_synthetic_records
+from tests.engine.test_train import FAST
+
+from usl.engine.checkpoint import load_model, read_checkpoint
+from usl.engine.run_log import read_metrics
+
+REPO = Path(__file__).parents[2]
+DOCS = REPO / "docs" / "getting_started.md"
+MODULE = ["-m", "usl.cli.train"]
+NODE_TIMEOUT_S = 120  # for both nodes to finish: they take 15-35 s on two busy cores
+SIZES = [  # the smallest recipe, shrunk: 4 iterations of 2 images per process
+    *FAST,
+    "train.device=cpu",  # gloo: on a one-GPU host both nodes would otherwise take GPU 0 (each is alone on its node)
+    "train.batch_size=2",
+    "optim.max_iter=4",
+    "train.log_every=2",
+    "train.checkpoint_every=2",
+    "val.period=0",
+]
+
+
+def documented_command() -> list[str]:
+    """The docs' multi-machine ``torchrun`` command (continuation lines joined), as words."""
+    text = DOCS.read_text().replace("\\\n", " ")
+    commands = [line for line in text.splitlines() if line.startswith("torchrun ") and "--nnodes" in line]
+    assert len(commands) == 1, f"{DOCS}: expected one multi-machine torchrun command, found {commands}"
+    return shlex.split(commands[0])
+
+
+def node_command(endpoint: str, rdzv_id: str, out: Path, records: Path) -> list[str]:
+    """The documented command with this host's endpoint, one process per node and the test's sizes."""
+    words = documented_command()
+    split = words.index(MODULE[0])
+    launcher, training = words[1:split], words[split + 2 :]
+    assert words[0] == "torchrun" and words[split : split + 2] == MODULE
+    flags = dict(zip(launcher[::2], launcher[1::2]))
+    assert len(launcher) == 2 * len(flags) and flags.keys() == {
+        "--nnodes",
+        "--nproc_per_node",
+        "--rdzv_backend",
+        "--rdzv_endpoint",
+        "--rdzv_id",
+    }, launcher
+    assert flags["--nnodes"] == "2" and flags["--rdzv_backend"] == "c10d"
+    flags.update({"--nproc_per_node": "1", "--rdzv_endpoint": endpoint, "--rdzv_id": rdzv_id})
+    assert len(training) == 5 and [training[0], training[2], training[4].split("=")[0]] == [
+        "--config",
+        "--out",
+        "data.root",
+    ], training
+    training = ["--config", "tiny", "--out", str(out), f"data.root={records}", *SIZES]
+    # torchrun is the console script of torch.distributed.run; this interpreter's, whatever PATH holds
+    return [sys.executable, "-m", "torch.distributed.run", *[w for f in flags.items() for w in f], *MODULE, *training]
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def parameter_sha256(state: dict[str, torch.Tensor], names: list[str]) -> str:
+    """The test's own digest of saved parameters (names in the model's order, values in NCHW order)."""
+    digest = hashlib.sha256()
+    for name in names:
+        digest.update(name.encode())
+        digest.update(state[name].contiguous().reshape(-1).view(torch.uint8).numpy().tobytes())
+    return digest.hexdigest()
+
+
+@pytest.fixture
+def start_node(tmp_path):
+    """Starts a node in its own process group; every node still running at the end is killed, group and all."""
+    nodes: list[subprocess.Popen] = []
+
+    def start(command: list[str], name: str) -> tuple[subprocess.Popen, Path]:
+        log = tmp_path / f"{name}.log"
+        env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(REPO)}
+        with log.open("w") as out:
+            nodes.append(
+                subprocess.Popen(
+                    command, cwd=REPO, env=env, stdout=out, stderr=subprocess.STDOUT, start_new_session=True
+                )
+            )
+        return nodes[-1], log
+
+    yield start
+    for node in nodes:
+        if node.poll() is None:
+            os.killpg(node.pid, signal.SIGKILL)
+            node.wait()
+
+
+def test_two_nodes_train_one_model_into_one_run_folder(tmp_path, start_node):
+    records = build_synthetic_records(tmp_path / "records", num_scenes=2, num_views=4, size=48)
+    out = tmp_path / "run"
+    command = node_command(f"127.0.0.1:{free_port()}", f"usl-test-{uuid.uuid4().hex[:8]}", out, records)
+    nodes = [start_node(command, f"node{k}") for k in range(2)]
+    deadline = time.monotonic() + NODE_TIMEOUT_S
+    while time.monotonic() < deadline and any(node.poll() is None for node, _ in nodes):
+        time.sleep(0.2)
+    printed = "\n".join(f"--- {log.stem}:\n{log.read_text()}" for _, log in nodes)
+    codes = [node.poll() for node, _ in nodes]  # None: still running after the deadline (killed by start_node)
+    assert codes == [0, 0], f"exit codes {codes} after at most {NODE_TIMEOUT_S} s:\n{printed[-4000:]}"
+    for word in ("warn", "Traceback", "error"):  # torchrun's banners, DDP's and torch's warnings alike
+        assert word.lower() not in printed.lower(), printed[-3000:]
+
+    # one training: one config and log, every logged interval once, checkpoints written once
+    assert printed.count("usl-train: starting:") == 1 and (out / "config.yaml").is_file()
+    assert (out / "log.txt").read_text().count("starting:") == 1
+    assert [row["iteration"] for row in read_metrics(out)] == [2, 4]
+    assert sorted(p.name for p in (out / "checkpoints").glob("*.pt")) == ["model_0000002.pt", "model_0000004.pt"]
+
+    # of two processes, whose weights are the same: the digest each recorded is the saved weights'
+    checkpoint = read_checkpoint(out)
+    assert checkpoint["world_size"] == 2 and checkpoint["iteration"] == 4
+    names = [name for name, _ in load_model(out)[0].named_parameters()]
+    assert checkpoint["replica_sha256"] == [parameter_sha256(checkpoint["model"], names)] * 2
