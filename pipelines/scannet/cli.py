@@ -49,6 +49,25 @@ def parse_size(text: str) -> tuple[int, int] | None:
     return None if text == "native" else resolution(text)
 
 
+def add_segmenter_arguments(group: argparse._ArgumentGroup) -> None:
+    """``--masks model``'s options (``--weights``, ``--device``, ``--segment-*``), read by ``model_source``."""
+    group.add_argument(
+        "--weights",
+        type=Path,
+        help="--masks model: detectron2 PointRend / Mask R-CNN .pkl or torchvision Mask R-CNN .pth (COCO)",
+    )
+    group.add_argument("--device", choices=DEVICE_CHOICES, default="auto", help="--masks model: where the segmenter runs")
+    group.add_argument("--segment-batch-size", type=int, default=1, help="--masks model: frames per forward pass")
+    group.add_argument(
+        "--segment-size",
+        type=int,
+        nargs=2,
+        default=(800, 1333),
+        metavar=("MIN", "MAX"),
+        help="--masks model: frames are resized to this shortest edge, longest at most MAX (detectron2's test size)",
+    )
+
+
 def parser(spec: dict) -> argparse.ArgumentParser:
     p = make_parser(COMMAND, __doc__, parents=[build_common_options()])
     add_build_arguments(p, skip_bad_scenes=True)
@@ -65,23 +84,7 @@ def parser(spec: dict) -> argparse.ArgumentParser:
         help="detections: a 2D segmenter's COCO results; model: run usl's segmenter on the frames (--weights); "
         "scannet-labels: ScanNet's own instance images",
     )
-    masks.add_argument(
-        "--weights",
-        type=Path,
-        help="--masks model: detectron2 PointRend / Mask R-CNN .pkl or torchvision Mask R-CNN .pth (COCO)",
-    )
-    masks.add_argument(
-        "--device", choices=DEVICE_CHOICES, default="auto", help="--masks model: where the segmenter runs"
-    )
-    masks.add_argument("--segment-batch-size", type=int, default=1, help="--masks model: frames per forward pass")
-    masks.add_argument(
-        "--segment-size",
-        type=int,
-        nargs=2,
-        default=(800, 1333),
-        metavar=("MIN", "MAX"),
-        help="--masks model: frames are resized to this shortest edge, longest at most MAX (detectron2's test size)",
-    )
+    add_segmenter_arguments(masks)
     masks.add_argument("--detections", nargs="+", help="COCO results JSON file(s) from the segmenter")
     masks.add_argument("--detection-images", type=Path, help="COCO images JSON mapping image_id to scan frames")
     masks.add_argument(
@@ -203,14 +206,14 @@ def mask_source(
 
     categories = spec["categories"]
     coco_to_category = tuple((int(c["coco_id"]), int(c["id"])) for c in categories)
-    if args.masks == "model":
-        return model_source(args, coco_to_category), model_fingerprint(args), None
     if args.masks == "scannet-labels":
         if args.label_map is None:
             raise UslError("--masks scannet-labels needs --label-map scannetv2-labels.combined.tsv")
         return ScanNetLabelsSource(str(args.label_map), tuple((int(c["id"]), c["name"]) for c in categories)), {}, None
     if args.tracker == "source-ids":
         raise UslError("--tracker source-ids needs --masks scannet-labels (detectors give no identities)")
+    if args.masks == "model":
+        return model_source(args, coco_to_category), model_fingerprint(args), None
     if not args.detections or args.detection_images is None:
         raise UslError("--masks detections needs --detections RESULTS.json and --detection-images IMAGES.json")
     results = [Path(p) for p in args.detections]
@@ -224,7 +227,9 @@ def mask_source(
 
 
 def model_source(args: argparse.Namespace, coco_to_category: tuple[tuple[int, int], ...]) -> MaskSource:
-    """``--masks model``: the segmenter's description; each build worker loads it when a scan needs it."""
+    """``--masks model``: the segmenter's description; each build worker loads it when a scan needs it.
+
+    Reads ``add_segmenter_arguments``' options and ``--out``, ``--stride``, ``--min-score``."""
     from usl.cli.common import resolve_device
     from usl.model.segmenter import SegmenterConfig
 
@@ -234,8 +239,6 @@ def model_source(args: argparse.Namespace, coco_to_category: tuple[tuple[int, in
         raise UslError("--masks model needs --weights FILE (detectron2 PointRend .pkl, e.g. model_final_edd263.pkl)")
     if not args.weights.is_file():
         raise UslError(f"{args.weights}: no such file")
-    if args.tracker == "source-ids":
-        raise UslError("--tracker source-ids needs --masks scannet-labels (detectors give no identities)")
     min_size, max_size = args.segment_size
     if min(min_size, max_size, args.segment_batch_size) < 1:
         raise UslError("--segment-size and --segment-batch-size must be >= 1")

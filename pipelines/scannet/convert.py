@@ -120,7 +120,9 @@ def frame_detections(
 def track_scan(scan: Scan, masks: ScanMasks, grid: OutputGrid, options: ConvertOptions) -> TrackedScan:
     """Pass 1: stream the processed frames through the tracker."""
     tracker = SourceIdTracker(options.tracker) if options.use_source_ids else IouTracker(options.tracker)
-    warp = DepthWarp(grid.K, grid.width, grid.height, options.depth_tolerance) if options.warps else None
+    has_depth = scan.calibration.has_depth
+    warps = options.warps and has_depth
+    warp = DepthWarp(grid.K, grid.width, grid.height, options.depth_tolerance) if warps else None
     poses: dict[int, np.ndarray] = {}
     skips: Counter = Counter()
     num_detections = 0
@@ -130,8 +132,8 @@ def track_scan(scan: Scan, masks: ScanMasks, grid: OutputGrid, options: ConvertO
         if pose is None:
             skips[SKIP_POSE] += 1
             continue
-        depth = scan.depth(index)
-        if depth is None:
+        depth = scan.depth(index) if has_depth else None
+        if has_depth and depth is None:
             skips[SKIP_DEPTH] += 1
             continue
         detections = frame_detections(masks, scan, index, options.min_score, mask_size)
@@ -162,7 +164,7 @@ def scene_frames(scan: Scan, tracked: TrackedScan, grid: OutputGrid, options: Co
             continue
         depth = grid.depth(scan.depth(index))
         instances = [make_instance(iid, cat, mask.astype(bool), depth) for iid, cat, mask in kept]
-        depth_png = encode_depth(depth) if options.store_depth else None
+        depth_png = encode_depth(depth) if options.store_depth and depth is not None else None
         image = grid.image(scan, index, options.jpeg_quality)
         yield frame_row(scan.scene_id, index, image, grid.K, pose, instances, grid.height, grid.width, depth_png)
 
