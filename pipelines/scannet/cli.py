@@ -39,6 +39,7 @@ from usl.records.names import check_name
 if TYPE_CHECKING:  # the converter loads torch: imported where used, after parsing (fast --help)
     from .convert import ConvertOptions
     from .masks import MaskSource
+    from .tracker import TrackerConfig
 
 COMMAND = "usl-convert-scannet"
 SPLITS = ("train", "val", "test")
@@ -56,7 +57,9 @@ def add_segmenter_arguments(group: argparse._ArgumentGroup) -> None:
         type=Path,
         help="--masks model: detectron2 PointRend / Mask R-CNN .pkl or torchvision Mask R-CNN .pth (COCO)",
     )
-    group.add_argument("--device", choices=DEVICE_CHOICES, default="auto", help="--masks model: where the segmenter runs")
+    group.add_argument(
+        "--device", choices=DEVICE_CHOICES, default="auto", help="--masks model: where the segmenter runs"
+    )
     group.add_argument("--segment-batch-size", type=int, default=1, help="--masks model: frames per forward pass")
     group.add_argument(
         "--segment-size",
@@ -66,6 +69,32 @@ def add_segmenter_arguments(group: argparse._ArgumentGroup) -> None:
         metavar=("MIN", "MAX"),
         help="--masks model: frames are resized to this shortest edge, longest at most MAX (detectron2's test size)",
     )
+
+
+def add_tracking_arguments(group: argparse._ArgumentGroup, spec: dict) -> None:
+    """The IoU tracker's options (read by ``tracker_config``) and the depth warp's tolerance."""
+    group.add_argument("--iou-threshold", type=float, default=0.5, help="mask IoU continuing a track")
+    group.add_argument("--max-missed", type=int, default=3, help="processed frames a track may go unmatched")
+    group.add_argument(
+        "--min-track-frames",
+        type=int,
+        default=int(spec["tracking"]["min_track_frames"]),
+        help="observations (processed frames) a track needs to become an object",
+    )
+    group.add_argument(
+        "--match-across-categories",
+        action="store_true",
+        help="let a detection continue a track of another category (the track's category is then "
+        "the score-weighted vote)",
+    )
+    group.add_argument("--depth-tolerance", type=float, default=0.2, help="metres, for the warp's visibility test")
+
+
+def tracker_config(args: argparse.Namespace) -> TrackerConfig:
+    """``add_tracking_arguments``' options as the tracker's config (ValueError if out of range)."""
+    from .tracker import TrackerConfig
+
+    return TrackerConfig(args.iou_threshold, args.max_missed, args.min_track_frames, args.match_across_categories)
 
 
 def parser(spec: dict) -> argparse.ArgumentParser:
@@ -117,27 +146,13 @@ def parser(spec: dict) -> argparse.ArgumentParser:
         default="iou",
         help="source-ids: use ScanNet's instance ids as tracks (only with --masks scannet-labels)",
     )
-    track.add_argument("--iou-threshold", type=float, default=0.5, help="mask IoU continuing a track")
-    track.add_argument("--max-missed", type=int, default=3, help="processed frames a track may go unmatched")
-    track.add_argument(
-        "--min-track-frames",
-        type=int,
-        default=int(spec["tracking"]["min_track_frames"]),
-        help="observations (processed frames) a track needs to become an object",
-    )
-    track.add_argument(
-        "--match-across-categories",
-        action="store_true",
-        help="let a detection continue a track of another category (the track's category is then "
-        "the score-weighted vote)",
-    )
+    add_tracking_arguments(track, spec)
     track.add_argument(
         "--warp",
         choices=("auto", "on", "off"),
         default="auto",
         help="warp the last mask of a track into the current frame with depth and pose (auto: when --stride > 1)",
     )
-    track.add_argument("--depth-tolerance", type=float, default=0.2, help="metres, for the warp's visibility test")
     deprecated_alias(p, "--size", "--resolution")
     return p
 
@@ -173,12 +188,9 @@ def scenes_by_split(args: argparse.Namespace) -> dict[str, list[str]]:
 
 def convert_options(args: argparse.Namespace) -> ConvertOptions:
     from .convert import ConvertOptions
-    from .tracker import TrackerConfig
 
     try:
-        tracker = TrackerConfig(
-            args.iou_threshold, args.max_missed, args.min_track_frames, args.match_across_categories
-        )
+        tracker = tracker_config(args)
         if not 1 <= args.jpeg_quality <= 100:
             raise ValueError(f"--jpeg-quality must lie in 1..100, got {args.jpeg_quality}")
         return ConvertOptions(

@@ -13,7 +13,7 @@ from collections import Counter, defaultdict
 from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
-from typing import Iterator
+from typing import Any, Iterator
 
 import numpy as np
 from pycocotools import mask as mask_utils
@@ -169,17 +169,28 @@ def scene_frames(scan: Scan, tracked: TrackedScan, grid: OutputGrid, options: Co
         yield frame_row(scan.scene_id, index, image, grid.K, pose, instances, grid.height, grid.width, depth_png)
 
 
-def build_scene(unit: ScanUnit) -> SceneRecord:
-    """The shared driver's per-unit function: tracks and frames of one scan (top level: picklable).
-
-    Inside a build, a scan's rows past the first row group are spilled to disk as they are encoded.
-    """
-    with open_scan(Path(unit.scene_dir), unit.scene_id) as scan, frame_sink(unit.scene_id) as sink:
-        grid = OutputGrid.for_scan(scan.calibration, unit.options.size)
-        tracked = track_scan(scan, unit.masks.open_scan(scan), grid, unit.options)
+def convert_scan(
+    scan: Scan,
+    masks: MaskSource,
+    options: ConvertOptions,
+    skips: Counter | None = None,
+    provenance: dict[str, Any] | None = None,
+) -> SceneRecord:
+    """Tracks and frames of an opened scan (any reader of the ``Scan`` protocol), ``skips`` the
+    reader's own. Inside a build, rows past the first row group are spilled to disk as encoded."""
+    with frame_sink(scan.scene_id) as sink:
+        grid = OutputGrid.for_scan(scan.calibration, options.size)
+        tracked = track_scan(scan, masks.open_scan(scan), grid, options)
+        tracked.skips.update(skips or Counter())
         if tracked.num_detections == 0:
             tracked.skips[SKIP_NO_DETECTIONS] += 1
-        for row in scene_frames(scan, tracked, grid, unit.options):
+        for row in scene_frames(scan, tracked, grid, options):
             sink.add(row)
-        skips = [Skip(reason, str(scan.path), count) for reason, count in sorted(tracked.skips.items()) if count]
-        return sink.finish(skips=skips)
+        found = [Skip(reason, str(scan.path), count) for reason, count in sorted(tracked.skips.items()) if count]
+        return sink.finish(skips=found, provenance=provenance)
+
+
+def build_scene(unit: ScanUnit) -> SceneRecord:
+    """The shared driver's per-unit function: one scan (top level: picklable)."""
+    with open_scan(Path(unit.scene_dir), unit.scene_id) as scan:
+        return convert_scan(scan, unit.masks, unit.options)

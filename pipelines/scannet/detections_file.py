@@ -190,7 +190,6 @@ class DetectionsFileSource:
         return None if category is None else Detection(category, score, rle)
 
 
-
 class ScanDetections:
     def __init__(self, by_frame: dict[int, list[Detection]]):
         self.by_frame = by_frame
