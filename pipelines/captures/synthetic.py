@@ -48,15 +48,18 @@ ROOM = (
 )
 
 
-def noise_texture(rng: np.random.Generator, size: int = 512) -> np.ndarray:
-    """Blobs at several scales: corners and gradients for SIFT at any distance."""
+def noise_texture(rng: np.random.Generator, size: int = 1024, blobs: int = 600) -> np.ndarray:
+    """Smooth colour noise under sharp random discs of many sizes: blobs and corners for SIFT at any distance."""
     image = np.zeros((size, size, 3), np.float32)
-    for cells, weight in ((4, 0.3), (16, 0.4), (64, 0.3), (256, 0.25)):
-        image += weight * cv2.resize(
-            rng.random((cells, cells, 3), np.float32), (size, size), interpolation=cv2.INTER_CUBIC
-        )
-    image -= image.min()
-    return (255 * image / image.max()).astype(np.uint8)
+    for cells in (4, 16, 64):
+        image += cv2.resize(rng.random((cells, cells, 3), np.float32), (size, size), interpolation=cv2.INTER_CUBIC)
+    low, high = np.percentile(image, (2, 98))
+    image = (255 * np.clip((image - low) / (high - low), 0, 1)).astype(np.uint8)
+    for _ in range(blobs):
+        centre = (int(rng.integers(size)), int(rng.integers(size)))
+        radius = int(size * rng.uniform(0.004, 0.04))
+        cv2.circle(image, centre, radius, [int(v) for v in rng.integers(0, 256, 3)], -1, cv2.LINE_AA)
+    return image
 
 
 def textured_box(centre, size, texture: np.ndarray) -> trimesh.Trimesh:
