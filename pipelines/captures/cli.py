@@ -65,7 +65,8 @@ def parser(spec: dict) -> argparse.ArgumentParser:
     p = make_parser(COMMAND, __doc__, parents=[build_common_options()])
     add_build_arguments(p, skip_bad_scenes=False)
     p.add_argument("root", type=Path, help="a capture folder, or a folder of capture folders")
-    p.add_argument("--split", default="train", help="the split every capture of this build goes to")
+    p.add_argument("--split", default="train", help="the split the captures go to (but those of --val)")
+    p.add_argument("--val", nargs="+", default=[], metavar="CAPTURE", help="captures (folder names) for split val")
     p.add_argument("--scenes-per-shard", type=int, default=8, help="captures per output shard")
     poses = p.add_argument_group("poses")
     poses.add_argument(
@@ -180,6 +181,21 @@ def mask_source(
     return CaptureDetectionsSource(coco_to_category, args.category_ids == "contiguous"), {"detection_files": stamps}
 
 
+def plan_shards(units: list, split: str, val: set[str], per_shard: int) -> list[ShardPlan]:
+    """``--val`` captures to split val, the rest to ``split``, ``per_shard`` captures a shard."""
+    unknown = val - {u.scene_id for u in units}
+    if unknown:
+        raise UslError(f"--val {' '.join(sorted(unknown))}: no such capture")
+    if val and split == "val":
+        raise UslError("--val needs --split other than val")
+    groups = {split: [u for u in units if u.scene_id not in val], "val": [u for u in units if u.scene_id in val]}
+    return [
+        ShardPlan(name, k, chosen[start : start + per_shard])
+        for name, chosen in groups.items()
+        for k, start in enumerate(range(0, len(chosen), per_shard))
+    ]
+
+
 def main(argv: list[str] | None = None) -> int:
     spec = load_dataset_spec("captures")
     args = parser(spec).parse_args(argv)
@@ -199,8 +215,7 @@ def main(argv: list[str] | None = None) -> int:
             CaptureUnit(scene, str(folder), source, masks, options, poses, str(work_dir(args.out, scene)), max_side)
             for scene, folder, source in captures
         ]
-        per = args.scenes_per_shard
-        plans = [ShardPlan(split, k, units[start : start + per]) for k, start in enumerate(range(0, len(units), per))]
+        plans = plan_shards(units, split, set(args.val), args.scenes_per_shard)
         summary = run_build(
             build,
             spec,

@@ -41,6 +41,7 @@ def run_sfm(images: Path, names: list[str], work: Path, options: SfmOptions) -> 
     if model.is_dir():
         return model
     pycolmap = import_pycolmap()
+    pycolmap.logging.minloglevel = 1  # warnings and errors only: COLMAP's INFO lines would bury the build's output
     scratch = work / f"tmp-{process_token()}"
     shutil.rmtree(scratch, ignore_errors=True)
     scratch.mkdir(parents=True)

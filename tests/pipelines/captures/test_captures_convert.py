@@ -114,3 +114,12 @@ def test_resume_keeps_the_finished_build(capture, tmp_path):
     before = (out / "manifest.json").read_text()
     assert convert(capture.root / "nerfstudio", out, "--workers", "2") == 0
     assert json.loads((out / "manifest.json").read_text())["splits"] == json.loads(before)["splits"]
+
+
+def test_a_folder_of_captures_with_one_held_out(capture, colmap_binary, tmp_path):
+    out = tmp_path / "records"
+    assert convert(capture.root, out, "--val", "colmap_text", "--max-side", "80") == 0
+    splits = load_manifest(out)["splits"]
+    assert splits["val"]["num_scenes"] == 1 and splits["train"]["num_scenes"] == 2
+    assert RecordsDataset(out, "val").scene_ids == ["colmap_text"]
+    assert convert(capture.root, tmp_path / "other", "--val", "nowhere") == 2
