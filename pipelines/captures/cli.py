@@ -28,6 +28,8 @@ from pipelines.common import (
     run_build,
 )
 from pipelines.scannet.cli import (
+    add_detection_arguments,
+    add_encoding_arguments,
     add_segmenter_arguments,
     add_tracking_arguments,
     model_fingerprint,
@@ -101,13 +103,7 @@ def parser(spec: dict) -> argparse.ArgumentParser:
         help="detections: each capture's detections.json (usl-segment's output); model: run usl's segmenter",
     )
     add_segmenter_arguments(masks)
-    masks.add_argument(
-        "--category-ids",
-        choices=("coco", "contiguous"),
-        default="coco",
-        help="coco: category_id is a COCO id (1..90); contiguous: detectron2's 0-based class index",
-    )
-    masks.add_argument("--min-score", type=float, default=0.5, help="ignore detections less confident than this")
+    add_detection_arguments(masks)
     frames = p.add_argument_group("frames")
     frames.add_argument("--stride", type=int, default=1, help="process every N-th frame of a capture")
     frames.add_argument(
@@ -119,10 +115,7 @@ def parser(spec: dict) -> argparse.ArgumentParser:
         help="output resolution, or 'native'; default: the longest side fitted to --max-side",
     )
     frames.add_argument("--max-side", type=int, default=640, help="longest output side when --resolution is not given")
-    frames.add_argument(
-        "--jpeg-quality", type=int, default=95, metavar="Q", help="for re-encoded (resized, undistorted) images"
-    )
-    frames.add_argument("--no-depth", action="store_true", help="do not store depth images in the records")
+    add_encoding_arguments(frames)
     track = p.add_argument_group("tracking")
     add_tracking_arguments(track, spec)
     track.add_argument(
@@ -141,8 +134,6 @@ def convert_options(args: argparse.Namespace) -> tuple[ConvertOptions, PoseOptio
     from .sfm import SfmOptions
 
     try:
-        if not 1 <= args.jpeg_quality <= 100:
-            raise ValueError(f"--jpeg-quality must lie in 1..100, got {args.jpeg_quality}")
         if args.max_side < 1:
             raise ValueError(f"--max-side must be >= 1, got {args.max_side}")
         options = ConvertOptions(

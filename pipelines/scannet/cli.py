@@ -71,6 +71,25 @@ def add_segmenter_arguments(group: argparse._ArgumentGroup) -> None:
     )
 
 
+def add_detection_arguments(group: argparse._ArgumentGroup) -> None:
+    """How a COCO results file names categories, and the score below which detections are ignored."""
+    group.add_argument(
+        "--category-ids",
+        choices=("coco", "contiguous"),
+        default="coco",
+        help="coco: category_id is a COCO id (1..90); contiguous: detectron2's 0-based class index",
+    )
+    group.add_argument("--min-score", type=float, default=0.5, help="ignore detections less confident than this")
+
+
+def add_encoding_arguments(group: argparse._ArgumentGroup) -> None:
+    """What the records store of a frame besides its masks: JPEG quality of re-encoded images, depth."""
+    group.add_argument(
+        "--jpeg-quality", type=int, default=95, metavar="Q", help="for re-encoded (resized) images (1..100)"
+    )
+    group.add_argument("--no-depth", action="store_true", help="do not store depth images in the records")
+
+
 def add_tracking_arguments(group: argparse._ArgumentGroup, spec: dict) -> None:
     """The IoU tracker's options (read by ``tracker_config``) and the depth warp's tolerance."""
     group.add_argument("--iou-threshold", type=float, default=0.5, help="mask IoU continuing a track")
@@ -116,14 +135,8 @@ def parser(spec: dict) -> argparse.ArgumentParser:
     add_segmenter_arguments(masks)
     masks.add_argument("--detections", nargs="+", help="COCO results JSON file(s) from the segmenter")
     masks.add_argument("--detection-images", type=Path, help="COCO images JSON mapping image_id to scan frames")
-    masks.add_argument(
-        "--category-ids",
-        choices=("coco", "contiguous"),
-        default="coco",
-        help="coco: category_id is a COCO id (1..90); contiguous: detectron2's 0-based class index",
-    )
+    add_detection_arguments(masks)
     masks.add_argument("--label-map", type=Path, help="scannetv2-labels.combined.tsv (for --masks scannet-labels)")
-    masks.add_argument("--min-score", type=float, default=0.5, help="ignore detections less confident than this")
     frames = p.add_argument_group("frames")
     frames.add_argument("--stride", type=int, default=10, help="process every N-th frame of a scan")
     # dest "size" as before the rename, so build fingerprints (and resuming) are unchanged
@@ -135,10 +148,7 @@ def parser(spec: dict) -> argparse.ArgumentParser:
         metavar="WxH",
         help="output resolution (one int: square), or 'native' to keep the colour frames (and their JPEG bytes)",
     )
-    frames.add_argument(
-        "--jpeg-quality", type=int, default=95, metavar="Q", help="for re-encoded (resized) images (1..100)"
-    )
-    frames.add_argument("--no-depth", action="store_true", help="do not store depth images in the records")
+    add_encoding_arguments(frames)
     track = p.add_argument_group("tracking")
     track.add_argument(
         "--tracker",
@@ -191,8 +201,6 @@ def convert_options(args: argparse.Namespace) -> ConvertOptions:
 
     try:
         tracker = tracker_config(args)
-        if not 1 <= args.jpeg_quality <= 100:
-            raise ValueError(f"--jpeg-quality must lie in 1..100, got {args.jpeg_quality}")
         return ConvertOptions(
             args.stride,
             args.size,

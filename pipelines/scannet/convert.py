@@ -67,6 +67,8 @@ class ConvertOptions:
             raise ValueError(f"warp must be auto, on or off, got {self.warp!r}")
         if self.size is not None and min(self.size) < 1:
             raise ValueError(f"output size must be positive, got {self.size}")
+        if not 1 <= self.jpeg_quality <= 100:
+            raise ValueError(f"--jpeg-quality must lie in 1..100, got {self.jpeg_quality}")
 
     @property
     def warps(self) -> bool:
