@@ -75,7 +75,7 @@ def posed_capture(unit: CaptureUnit) -> PosedCapture:
     return posed_from_reconstruction(read_model(model), images, folder, SFM_SOURCE, names, str(model))
 
 
-def output_size(color_size: tuple[int, int], max_side: int | None) -> tuple[int, int] | None:
+def fitted_size(color_size: tuple[int, int], max_side: int | None) -> tuple[int, int] | None:
     """The longest side fitted to ``max_side`` (never enlarged), the aspect ratio kept."""
     width, height = color_size
     if max_side is None or max(width, height) <= max_side:
@@ -92,7 +92,7 @@ def build_scene(unit: CaptureUnit) -> SceneRecord:
         capture.scale = scale.metres_per_unit
         options = unit.options
         if options.size is None:
-            options = dataclasses.replace(options, size=output_size(capture.color_size, unit.max_side))
+            options = dataclasses.replace(options, size=fitted_size(capture.color_size, unit.max_side))
         has_depth = capture.calibration.has_depth
         provenance = {
             "source": unit.source.kind,

@@ -4,6 +4,7 @@ renderer's truth (poses, K, depth, visible masks), the record validator and the 
 from __future__ import annotations
 
 import json
+import shutil
 from collections import defaultdict
 
 import numpy as np
@@ -123,3 +124,29 @@ def test_a_folder_of_captures_with_one_held_out(capture, colmap_binary, tmp_path
     assert splits["val"]["num_scenes"] == 1 and splits["train"]["num_scenes"] == 2
     assert RecordsDataset(out, "val").scene_ids == ["colmap_text"]
     assert convert(capture.root, tmp_path / "other", "--val", "nowhere") == 2
+
+
+def test_scale_from_the_option_or_the_prior(capture, tmp_path):
+    """--scale multiplies the poses; a COLMAP model without depth gets the documented prior."""
+    truth = capture.truth
+    assert convert(capture.root / "nerfstudio", tmp_path / "scaled", "--scale", "2", "--max-side", "80") == 0
+    (about,) = load_manifest(tmp_path / "scaled")["provenance"].values()
+    assert (about["scale"], about["scale_origin"]) == (2.0, "--scale")
+    frames = read_frames(tmp_path / "scaled")
+    got = np.asarray(frames[-1]["cam_to_world"], float).reshape(4, 4)[:3, 3]
+    np.testing.assert_allclose(got, 2 * truth.cam_to_world[frames[-1]["view_id"]][:3, 3], atol=1e-6)
+
+    folder = tmp_path / "no_depth"
+    shutil.copytree(capture.root / "colmap_text", folder)
+    shutil.rmtree(folder / "depth")
+    assert convert(folder, tmp_path / "prior", "--max-side", "80") == 0
+    (about,) = load_manifest(tmp_path / "prior")["provenance"].values()
+    assert about["scale_origin"].startswith("prior") and not about["depth"]
+    assert about["association"] == "mask IoU in place"
+    depths = np.concatenate([d[d > 0] for d in truth.depth])  # the sparse points sample these surfaces
+    assert about["scale"] == pytest.approx(0.37 * 2.0 / np.median(depths), rel=0.1)
+    check_objects(
+        read_frames(tmp_path / "prior"),
+        truth,
+        {c["id"]: c["name"] for c in load_manifest(tmp_path / "prior")["categories"]},
+    )
