@@ -12,7 +12,7 @@ from typing import Any
 import yaml
 
 SPEC_DIR = Path(__file__).resolve().parent
-DATASETS = ("scene_shapes", "hypersim", "scannet")
+DATASETS = ("scene_shapes", "hypersim", "scannet", "captures")
 
 
 @lru_cache(maxsize=None)

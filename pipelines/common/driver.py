@@ -165,6 +165,7 @@ RUN_OPTIONS = {
     "claim_timeout",
     "device",  # where a model runs (usl-convert-scannet --masks model)
     "segment_batch_size",
+    "sfm_threads",  # usl-convert-captures --poses sfm
 }
 
 

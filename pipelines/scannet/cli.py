@@ -39,6 +39,7 @@ from usl.records.names import check_name
 if TYPE_CHECKING:  # the converter loads torch: imported where used, after parsing (fast --help)
     from .convert import ConvertOptions
     from .masks import MaskSource
+    from .tracker import TrackerConfig
 
 COMMAND = "usl-convert-scannet"
 SPLITS = ("train", "val", "test")
@@ -47,6 +48,72 @@ SPLITS = ("train", "val", "test")
 def parse_size(text: str) -> tuple[int, int] | None:
     """``--resolution``: the shared ``WxH``-or-one-int syntax, or ``native``."""
     return None if text == "native" else resolution(text)
+
+
+def add_segmenter_arguments(group: argparse._ArgumentGroup) -> None:
+    """``--masks model``'s options (``--weights``, ``--device``, ``--segment-*``), read by ``model_source``."""
+    group.add_argument(
+        "--weights",
+        type=Path,
+        help="--masks model: detectron2 PointRend / Mask R-CNN .pkl or torchvision Mask R-CNN .pth (COCO)",
+    )
+    group.add_argument(
+        "--device", choices=DEVICE_CHOICES, default="auto", help="--masks model: where the segmenter runs"
+    )
+    group.add_argument("--segment-batch-size", type=int, default=1, help="--masks model: frames per forward pass")
+    group.add_argument(
+        "--segment-size",
+        type=int,
+        nargs=2,
+        default=(800, 1333),
+        metavar=("MIN", "MAX"),
+        help="--masks model: frames are resized to this shortest edge, longest at most MAX (detectron2's test size)",
+    )
+
+
+def add_detection_arguments(group: argparse._ArgumentGroup) -> None:
+    """How a COCO results file names categories, and the score below which detections are ignored."""
+    group.add_argument(
+        "--category-ids",
+        choices=("coco", "contiguous"),
+        default="coco",
+        help="coco: category_id is a COCO id (1..90); contiguous: detectron2's 0-based class index",
+    )
+    group.add_argument("--min-score", type=float, default=0.5, help="ignore detections less confident than this")
+
+
+def add_encoding_arguments(group: argparse._ArgumentGroup) -> None:
+    """What the records store of a frame besides its masks: JPEG quality of re-encoded images, depth."""
+    group.add_argument(
+        "--jpeg-quality", type=int, default=95, metavar="Q", help="for re-encoded (resized) images (1..100)"
+    )
+    group.add_argument("--no-depth", action="store_true", help="do not store depth images in the records")
+
+
+def add_tracking_arguments(group: argparse._ArgumentGroup, spec: dict) -> None:
+    """The IoU tracker's options (read by ``tracker_config``) and the depth warp's tolerance."""
+    group.add_argument("--iou-threshold", type=float, default=0.5, help="mask IoU continuing a track")
+    group.add_argument("--max-missed", type=int, default=3, help="processed frames a track may go unmatched")
+    group.add_argument(
+        "--min-track-frames",
+        type=int,
+        default=int(spec["tracking"]["min_track_frames"]),
+        help="observations (processed frames) a track needs to become an object",
+    )
+    group.add_argument(
+        "--match-across-categories",
+        action="store_true",
+        help="let a detection continue a track of another category (the track's category is then "
+        "the score-weighted vote)",
+    )
+    group.add_argument("--depth-tolerance", type=float, default=0.2, help="metres, for the warp's visibility test")
+
+
+def tracker_config(args: argparse.Namespace) -> TrackerConfig:
+    """``add_tracking_arguments``' options as the tracker's config (ValueError if out of range)."""
+    from .tracker import TrackerConfig
+
+    return TrackerConfig(args.iou_threshold, args.max_missed, args.min_track_frames, args.match_across_categories)
 
 
 def parser(spec: dict) -> argparse.ArgumentParser:
@@ -65,33 +132,11 @@ def parser(spec: dict) -> argparse.ArgumentParser:
         help="detections: a 2D segmenter's COCO results; model: run usl's segmenter on the frames (--weights); "
         "scannet-labels: ScanNet's own instance images",
     )
-    masks.add_argument(
-        "--weights",
-        type=Path,
-        help="--masks model: detectron2 PointRend / Mask R-CNN .pkl or torchvision Mask R-CNN .pth (COCO)",
-    )
-    masks.add_argument(
-        "--device", choices=DEVICE_CHOICES, default="auto", help="--masks model: where the segmenter runs"
-    )
-    masks.add_argument("--segment-batch-size", type=int, default=1, help="--masks model: frames per forward pass")
-    masks.add_argument(
-        "--segment-size",
-        type=int,
-        nargs=2,
-        default=(800, 1333),
-        metavar=("MIN", "MAX"),
-        help="--masks model: frames are resized to this shortest edge, longest at most MAX (detectron2's test size)",
-    )
+    add_segmenter_arguments(masks)
     masks.add_argument("--detections", nargs="+", help="COCO results JSON file(s) from the segmenter")
     masks.add_argument("--detection-images", type=Path, help="COCO images JSON mapping image_id to scan frames")
-    masks.add_argument(
-        "--category-ids",
-        choices=("coco", "contiguous"),
-        default="coco",
-        help="coco: category_id is a COCO id (1..90); contiguous: detectron2's 0-based class index",
-    )
+    add_detection_arguments(masks)
     masks.add_argument("--label-map", type=Path, help="scannetv2-labels.combined.tsv (for --masks scannet-labels)")
-    masks.add_argument("--min-score", type=float, default=0.5, help="ignore detections less confident than this")
     frames = p.add_argument_group("frames")
     frames.add_argument("--stride", type=int, default=10, help="process every N-th frame of a scan")
     # dest "size" as before the rename, so build fingerprints (and resuming) are unchanged
@@ -103,10 +148,7 @@ def parser(spec: dict) -> argparse.ArgumentParser:
         metavar="WxH",
         help="output resolution (one int: square), or 'native' to keep the colour frames (and their JPEG bytes)",
     )
-    frames.add_argument(
-        "--jpeg-quality", type=int, default=95, metavar="Q", help="for re-encoded (resized) images (1..100)"
-    )
-    frames.add_argument("--no-depth", action="store_true", help="do not store depth images in the records")
+    add_encoding_arguments(frames)
     track = p.add_argument_group("tracking")
     track.add_argument(
         "--tracker",
@@ -114,27 +156,13 @@ def parser(spec: dict) -> argparse.ArgumentParser:
         default="iou",
         help="source-ids: use ScanNet's instance ids as tracks (only with --masks scannet-labels)",
     )
-    track.add_argument("--iou-threshold", type=float, default=0.5, help="mask IoU continuing a track")
-    track.add_argument("--max-missed", type=int, default=3, help="processed frames a track may go unmatched")
-    track.add_argument(
-        "--min-track-frames",
-        type=int,
-        default=int(spec["tracking"]["min_track_frames"]),
-        help="observations (processed frames) a track needs to become an object",
-    )
-    track.add_argument(
-        "--match-across-categories",
-        action="store_true",
-        help="let a detection continue a track of another category (the track's category is then "
-        "the score-weighted vote)",
-    )
+    add_tracking_arguments(track, spec)
     track.add_argument(
         "--warp",
         choices=("auto", "on", "off"),
         default="auto",
         help="warp the last mask of a track into the current frame with depth and pose (auto: when --stride > 1)",
     )
-    track.add_argument("--depth-tolerance", type=float, default=0.2, help="metres, for the warp's visibility test")
     deprecated_alias(p, "--size", "--resolution")
     return p
 
@@ -170,14 +198,9 @@ def scenes_by_split(args: argparse.Namespace) -> dict[str, list[str]]:
 
 def convert_options(args: argparse.Namespace) -> ConvertOptions:
     from .convert import ConvertOptions
-    from .tracker import TrackerConfig
 
     try:
-        tracker = TrackerConfig(
-            args.iou_threshold, args.max_missed, args.min_track_frames, args.match_across_categories
-        )
-        if not 1 <= args.jpeg_quality <= 100:
-            raise ValueError(f"--jpeg-quality must lie in 1..100, got {args.jpeg_quality}")
+        tracker = tracker_config(args)
         return ConvertOptions(
             args.stride,
             args.size,
@@ -203,14 +226,14 @@ def mask_source(
 
     categories = spec["categories"]
     coco_to_category = tuple((int(c["coco_id"]), int(c["id"])) for c in categories)
-    if args.masks == "model":
-        return model_source(args, coco_to_category), model_fingerprint(args), None
     if args.masks == "scannet-labels":
         if args.label_map is None:
             raise UslError("--masks scannet-labels needs --label-map scannetv2-labels.combined.tsv")
         return ScanNetLabelsSource(str(args.label_map), tuple((int(c["id"]), c["name"]) for c in categories)), {}, None
     if args.tracker == "source-ids":
         raise UslError("--tracker source-ids needs --masks scannet-labels (detectors give no identities)")
+    if args.masks == "model":
+        return model_source(args, coco_to_category), model_fingerprint(args), None
     if not args.detections or args.detection_images is None:
         raise UslError("--masks detections needs --detections RESULTS.json and --detection-images IMAGES.json")
     results = [Path(p) for p in args.detections]
@@ -224,7 +247,9 @@ def mask_source(
 
 
 def model_source(args: argparse.Namespace, coco_to_category: tuple[tuple[int, int], ...]) -> MaskSource:
-    """``--masks model``: the segmenter's description; each build worker loads it when a scan needs it."""
+    """``--masks model``: the segmenter's description; each build worker loads it when a scan needs it.
+
+    Reads ``add_segmenter_arguments``' options and ``--out``, ``--stride``, ``--min-score``."""
     from usl.cli.common import resolve_device
     from usl.model.segmenter import SegmenterConfig
 
@@ -234,8 +259,6 @@ def model_source(args: argparse.Namespace, coco_to_category: tuple[tuple[int, in
         raise UslError("--masks model needs --weights FILE (detectron2 PointRend .pkl, e.g. model_final_edd263.pkl)")
     if not args.weights.is_file():
         raise UslError(f"{args.weights}: no such file")
-    if args.tracker == "source-ids":
-        raise UslError("--tracker source-ids needs --masks scannet-labels (detectors give no identities)")
     min_size, max_size = args.segment_size
     if min(min_size, max_size, args.segment_batch_size) < 1:
         raise UslError("--segment-size and --segment-batch-size must be >= 1")

@@ -13,7 +13,7 @@ from collections import Counter, defaultdict
 from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
-from typing import Iterator
+from typing import Any, Iterator
 
 import numpy as np
 from pycocotools import mask as mask_utils
@@ -67,6 +67,8 @@ class ConvertOptions:
             raise ValueError(f"warp must be auto, on or off, got {self.warp!r}")
         if self.size is not None and min(self.size) < 1:
             raise ValueError(f"output size must be positive, got {self.size}")
+        if not 1 <= self.jpeg_quality <= 100:
+            raise ValueError(f"--jpeg-quality must lie in 1..100, got {self.jpeg_quality}")
 
     @property
     def warps(self) -> bool:
@@ -120,7 +122,9 @@ def frame_detections(
 def track_scan(scan: Scan, masks: ScanMasks, grid: OutputGrid, options: ConvertOptions) -> TrackedScan:
     """Pass 1: stream the processed frames through the tracker."""
     tracker = SourceIdTracker(options.tracker) if options.use_source_ids else IouTracker(options.tracker)
-    warp = DepthWarp(grid.K, grid.width, grid.height, options.depth_tolerance) if options.warps else None
+    has_depth = scan.calibration.has_depth
+    warps = options.warps and has_depth
+    warp = DepthWarp(grid.K, grid.width, grid.height, options.depth_tolerance) if warps else None
     poses: dict[int, np.ndarray] = {}
     skips: Counter = Counter()
     num_detections = 0
@@ -130,8 +134,8 @@ def track_scan(scan: Scan, masks: ScanMasks, grid: OutputGrid, options: ConvertO
         if pose is None:
             skips[SKIP_POSE] += 1
             continue
-        depth = scan.depth(index)
-        if depth is None:
+        depth = scan.depth(index) if has_depth else None
+        if has_depth and depth is None:
             skips[SKIP_DEPTH] += 1
             continue
         detections = frame_detections(masks, scan, index, options.min_score, mask_size)
@@ -162,22 +166,33 @@ def scene_frames(scan: Scan, tracked: TrackedScan, grid: OutputGrid, options: Co
             continue
         depth = grid.depth(scan.depth(index))
         instances = [make_instance(iid, cat, mask.astype(bool), depth) for iid, cat, mask in kept]
-        depth_png = encode_depth(depth) if options.store_depth else None
+        depth_png = encode_depth(depth) if options.store_depth and depth is not None else None
         image = grid.image(scan, index, options.jpeg_quality)
         yield frame_row(scan.scene_id, index, image, grid.K, pose, instances, grid.height, grid.width, depth_png)
 
 
-def build_scene(unit: ScanUnit) -> SceneRecord:
-    """The shared driver's per-unit function: tracks and frames of one scan (top level: picklable).
-
-    Inside a build, a scan's rows past the first row group are spilled to disk as they are encoded.
-    """
-    with open_scan(Path(unit.scene_dir), unit.scene_id) as scan, frame_sink(unit.scene_id) as sink:
-        grid = OutputGrid.for_scan(scan.calibration, unit.options.size)
-        tracked = track_scan(scan, unit.masks.open_scan(scan), grid, unit.options)
+def convert_scan(
+    scan: Scan,
+    masks: MaskSource,
+    options: ConvertOptions,
+    skips: Counter | None = None,
+    provenance: dict[str, Any] | None = None,
+) -> SceneRecord:
+    """Tracks and frames of an opened scan (any reader of the ``Scan`` protocol), ``skips`` the
+    reader's own. Inside a build, rows past the first row group are spilled to disk as encoded."""
+    with frame_sink(scan.scene_id) as sink:
+        grid = OutputGrid.for_scan(scan.calibration, options.size)
+        tracked = track_scan(scan, masks.open_scan(scan), grid, options)
+        tracked.skips.update(skips or Counter())
         if tracked.num_detections == 0:
             tracked.skips[SKIP_NO_DETECTIONS] += 1
-        for row in scene_frames(scan, tracked, grid, unit.options):
+        for row in scene_frames(scan, tracked, grid, options):
             sink.add(row)
-        skips = [Skip(reason, str(scan.path), count) for reason, count in sorted(tracked.skips.items()) if count]
-        return sink.finish(skips=skips)
+        found = [Skip(reason, str(scan.path), count) for reason, count in sorted(tracked.skips.items()) if count]
+        return sink.finish(skips=found, provenance=provenance)
+
+
+def build_scene(unit: ScanUnit) -> SceneRecord:
+    """The shared driver's per-unit function: one scan (top level: picklable)."""
+    with open_scan(Path(unit.scene_dir), unit.scene_id) as scan:
+        return convert_scan(scan, unit.masks, unit.options)

@@ -49,7 +49,8 @@ def frame_of_file_name(file_name: str) -> tuple[str, int] | None:
     return (match.group(1), int(match.group(2))) if match else None
 
 
-def _load_json(path: Path) -> Any:
+def load_json(path: Path) -> Any:
+    """A JSON file, or a one-line UslError naming it."""
     try:
         with open(path, "rb") as f:
             return json.load(f)
@@ -60,7 +61,7 @@ def _load_json(path: Path) -> Any:
 
 
 def load_images(path: Path) -> dict[int, ImageEntry]:
-    data = _load_json(path)
+    data = load_json(path)
     images = data.get("images") if isinstance(data, dict) else data
     if not isinstance(images, list):
         raise UslError(f"{path}: expected COCO's images list (or a dict with an 'images' key)")
@@ -93,7 +94,7 @@ def split_detections(results: Iterable[Path], images_path: Path, scene_ids: set[
     out_dir.mkdir(parents=True, exist_ok=True)
     (out_dir / SOURCES_FILE).write_text(json.dumps({"results": [str(p) for p in results], "images": str(images_path)}))
     for src, path in enumerate(results):
-        data = _load_json(path)
+        data = load_json(path)
         if not isinstance(data, list):
             raise UslError(f"{path}: expected a list of detections (COCO results format)")
         per_scene: dict[str, list[str]] = defaultdict(list)
@@ -121,6 +122,26 @@ def split_detections(results: Iterable[Path], images_path: Path, scene_ids: set[
         for scene_id, lines in per_scene.items():
             with open(out_dir / f"{scene_id}.jsonl", "a") as f:
                 f.write("\n".join(lines) + "\n")
+
+
+def checked_coco_id(category_id: Any, contiguous: bool, where: str) -> int:
+    """A detection's COCO category id (from detectron2's 0-based class index when ``contiguous``)."""
+    if not isinstance(category_id, int):
+        raise UslError(f"{where}: category_id {category_id!r} is not an integer")
+    if contiguous:
+        if not 0 <= category_id < len(coco_category_ids()):
+            raise UslError(f"{where}: contiguous category index {category_id} is outside 0..79")
+        return coco_category_ids()[category_id]
+    if category_id not in coco_category_ids():
+        hint = " (0-based class indices? use --category-ids contiguous)" if category_id == 0 else ""
+        raise UslError(f"{where}: category_id {category_id} is not a COCO category id{hint}")
+    return category_id
+
+
+def checked_score(score: Any, where: str) -> float:
+    if not isinstance(score, (int, float)) or not math.isfinite(score):
+        raise UslError(f"{where}: score {score!r} is not a finite number")
+    return float(score)
 
 
 @dataclass(frozen=True)
@@ -159,28 +180,14 @@ class DetectionsFileSource:
             )
         if line["frame"] not in frames:
             raise UslError(f"{where} names frame {line['frame']} of {scan.scene_id}, which {scan.path} does not have")
-        coco_id = self._coco_id(line["category_id"], where)
-        score = line["score"]
-        if not isinstance(score, (int, float)) or not math.isfinite(score):
-            raise UslError(f"{where}: score {score!r} is not a finite number")
+        coco_id = checked_coco_id(line["category_id"], self.contiguous_ids, where)
+        score = checked_score(line["score"], where)
         try:
             rle = checked_rle(line["segmentation"], height, width)
         except ValueError as exc:
             raise UslError(f"{where}: malformed mask: {exc}") from None
         category = mapping.get(coco_id)
-        return None if category is None else Detection(category, float(score), rle)
-
-    def _coco_id(self, category_id: Any, where: str) -> int:
-        if not isinstance(category_id, int):
-            raise UslError(f"{where}: category_id {category_id!r} is not an integer")
-        if self.contiguous_ids:
-            if not 0 <= category_id < len(coco_category_ids()):
-                raise UslError(f"{where}: contiguous category index {category_id} is outside 0..79")
-            return coco_category_ids()[category_id]
-        if category_id not in coco_category_ids():
-            hint = " (0-based class indices? use --category-ids contiguous)" if category_id == 0 else ""
-            raise UslError(f"{where}: category_id {category_id} is not a COCO category id{hint}")
-        return category_id
+        return None if category is None else Detection(category, score, rle)
 
 
 class ScanDetections:

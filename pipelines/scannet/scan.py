@@ -30,6 +30,7 @@ class Calibration:
     K_color: np.ndarray
     K_depth: np.ndarray
     depth_shift: float  # stored depth value per metre (1000: millimetres)
+    has_depth: bool = True  # False: a capture without depth (K_depth, depth_size then repeat the colour's)
 
 
 class Scan(Protocol):

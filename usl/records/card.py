@@ -100,6 +100,22 @@ def _provenance(creator: dict[str, Any]) -> list[str]:
     return lines + ["Skipped items and the shards' checksums are in `manifest.json`.", ""]
 
 
+def _scene_provenance(provenance: dict[str, dict[str, Any]]) -> list[str]:
+    """Per-scene facts the pipeline reported (e.g. a capture's pose source and metric scale)."""
+    keys = sorted({key for about in provenance.values() for key in about})
+    return [
+        "### Scenes",
+        "",
+        "| scene | " + " | ".join(keys) + " |",
+        "|---|" + "---|" * len(keys),
+        *(
+            f"| {scene} | " + " | ".join(f"`{json.dumps(about.get(k))}`" for k in keys) + " |"
+            for scene, about in provenance.items()
+        ),
+        "",
+    ]
+
+
 def dataset_card(manifest: dict[str, Any]) -> str:
     spec = load_schema_spec(SCHEMA_VERSION)
     front = {
@@ -165,6 +181,8 @@ def dataset_card(manifest: dict[str, Any]) -> str:
         ]
     if manifest.get("creator"):
         lines += _provenance(manifest["creator"])
+    if manifest.get("provenance"):
+        lines += _scene_provenance(manifest["provenance"])
     return "\n".join(lines)
 
 

@@ -232,3 +232,6 @@ class SceneRecord:
     objects: list[dict[str, Any]] = field(default_factory=list)
     skips: list[Skip] = field(default_factory=list)
     frames_file: Path | None = None
+    # facts about how the scene was made that no frame row holds (e.g. where a capture's poses and
+    # metric scale came from), JSON-able; the manifest keeps them per scene
+    provenance: dict[str, Any] = field(default_factory=dict)

@@ -40,6 +40,7 @@ def build_manifest(
     """Assemble the manifest from finished shard results (dicts of ShardResult fields)."""
     splits: dict[str, Any] = {}
     skips: list[dict[str, Any]] = []
+    provenance: dict[str, Any] = {}
     for shard in sorted(shards, key=lambda s: (s["split"], s["index"])):
         entry = splits.setdefault(shard["split"], {"num_scenes": 0, "num_frames": 0, "num_objects": 0, "shards": []})
         entry["num_scenes"] += len(shard["scenes"])
@@ -47,6 +48,7 @@ def build_manifest(
         entry["num_objects"] += shard["objects"]["rows"] if shard["objects"] else 0
         entry["shards"].append({k: shard[k] for k in ("index", "frames", "objects", "scenes")})
         skips.extend(dict(s, split=shard["split"]) for s in shard["skips"])
+        provenance.update(shard.get("provenance") or {})
     return {
         **dataset_metadata(spec),
         "baselines": spec.get("baselines", {}),
@@ -55,6 +57,8 @@ def build_manifest(
         "num_skipped": sum(s["count"] for s in skips),
         "creator": creator,
         "fingerprint": fingerprint,
+        # per-scene facts of how a scene was made, only from pipelines that report them
+        **({"provenance": dict(sorted(provenance.items()))} if provenance else {}),
     }
 
 

@@ -104,6 +104,7 @@ class ShardResult:
     objects: dict[str, Any] | None
     scenes: list[list[Any]]  # [scene_id, first_row, num_rows]
     skips: list[dict[str, Any]] = field(default_factory=list)
+    provenance: dict[str, dict[str, Any]] = field(default_factory=dict)  # scene_id -> SceneRecord.provenance
 
 
 def _leaf_paths(prefix: str, type_: pa.DataType) -> list[str]:
@@ -215,14 +216,22 @@ class FrameSink:
             self._spill.write(frames_table(self._rows[:MAX_ROWS_PER_GROUP], self._spill.schema))
             del self._rows[:MAX_ROWS_PER_GROUP]
 
-    def finish(self, objects: Iterable[dict[str, Any]] = (), skips: Iterable[Skip] = ()) -> SceneRecord:
+    def finish(
+        self,
+        objects: Iterable[dict[str, Any]] = (),
+        skips: Iterable[Skip] = (),
+        provenance: dict[str, Any] | None = None,
+    ) -> SceneRecord:
         """The scene's record; its spill file (if any) is complete and belongs to the shard writer now."""
+        about = dict(provenance or {})
         if self._spill is None:
-            return SceneRecord(self.scene_id, self._rows, list(objects), list(skips))
+            return SceneRecord(self.scene_id, self._rows, list(objects), list(skips), provenance=about)
         if self._rows:
             self._spill.write(frames_table(self._rows, self._spill.schema))
             self._rows = []
-        return SceneRecord(self.scene_id, [], list(objects), list(skips), frames_file=self._spill.publish())
+        return SceneRecord(
+            self.scene_id, [], list(objects), list(skips), frames_file=self._spill.publish(), provenance=about
+        )
 
     def abort(self) -> None:
         if self._spill is not None:
@@ -271,6 +280,7 @@ class ShardWriter:
         self._batch_objects: list[dict[str, Any]] = []
         self._scenes: list[list[Any]] = []
         self._skips: list[Skip] = []
+        self._provenance: dict[str, dict[str, Any]] = {}
         self._seen: set[str] = set()
 
     def add_scene(self, record: SceneRecord) -> int:
@@ -281,6 +291,8 @@ class ShardWriter:
             raise ValueError(f"scene {record.scene_id!r}: frames given both in memory and in {record.frames_file}")
         self._seen.add(record.scene_id)
         self._skips.extend(record.skips)
+        if record.provenance:
+            self._provenance[record.scene_id] = dict(record.provenance)
         first, last_view = self._rows, None
         for chunk in _frame_chunks(record, self._frames.schema):
             columns = chunk.select(["scene_id", "view_id"]).to_pydict()
@@ -330,7 +342,7 @@ class ShardWriter:
         objects = self._objects.commit(self._files["objects"]) if self._objects is not None else None
         frames = self._frames.commit(self._files["frames"])
         skips = [{"reason": s.reason, "path": s.path, "count": s.count} for s in self._skips]
-        return ShardResult(self.split, self.index, frames, objects, self._scenes, skips)
+        return ShardResult(self.split, self.index, frames, objects, self._scenes, skips, self._provenance)
 
     def abort(self) -> None:
         self._frames.abort()
