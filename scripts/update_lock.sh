@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Re-pins scripts/requirements.lock: every dependency of usl and of its test, ray and tensorboard
+# Re-pins scripts/requirements.lock: every dependency of usl and of its test, ray, tensorboard and captures
 # extras, for every Python pyproject.toml allows (one universal file, markers where versions
 # differ), at the torch version the figures in docs/results.md were measured with. Run it when a
 # dependency changes in pyproject.toml, then run the main job and the tests (.ci/run) on the result.
@@ -12,7 +12,7 @@ trap 'rm -rf "$TOOLS"' EXIT
 python3 -m venv "$TOOLS/venv"
 "$TOOLS/venv/bin/pip" install -q uv
 echo "torch==$TORCH" >"$TOOLS/torch.txt"
-"$TOOLS/venv/bin/uv" pip compile pyproject.toml --extra test --extra ray --extra tensorboard \
+"$TOOLS/venv/bin/uv" pip compile pyproject.toml --extra test --extra ray --extra tensorboard --extra captures \
   --universal --python-version 3.10 --constraint "$TOOLS/torch.txt" --no-header --quiet \
   --output-file scripts/requirements.lock.new
 {
