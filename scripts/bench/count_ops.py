@@ -27,7 +27,6 @@ import argparse
 import contextlib
 import statistics
 import time
-from pathlib import Path
 
 import torch
 from train import bench_step  # scripts/bench/train.py: the same step and batches it times
@@ -35,7 +34,6 @@ from train import bench_step  # scripts/bench/train.py: the same step and batche
 from usl.utils.compiled import torch_paths_only
 from usl.utils.op_count import count_ops, format_report
 
-ROOT = Path(__file__).resolve().parents[2]
 
 SIZE = {"tiny": (128, 128), "tiny_long": (128, 128), "hypersim": (192, 256), "scannet": (242, 324)}
 OBJECTS = {"tiny": 2, "tiny_long": 2, "hypersim": 20, "scannet": 8}
@@ -67,7 +65,7 @@ def main() -> None:
         step(batches[iteration % 2])
     frames = [sample.frame for sample in batches[args.warmup % 2]]
     paths = contextlib.nullcontext() if args.compiled else torch_paths_only()
-    with paths, count_ops(ROOT) as count:
+    with paths, count_ops() as count:
         if args.predict:
             with torch.no_grad():
                 step.model.predict(frames, args.predict)

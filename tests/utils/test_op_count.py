@@ -4,6 +4,10 @@ the torch paths a CUDA step runs (``torch_paths_only``): on CPU tensors the soft
 resampling's, the silhouette Chamfer's and NMS's compiled loops read their inputs on the host, which
 only the CPU pays."""
 
+import sys
+import sysconfig
+from pathlib import Path
+
 import torch
 
 from usl.engine.synthetic import synthetic_config, synthetic_sample
@@ -11,7 +15,8 @@ from usl.engine.distributed import DistInfo
 from usl.engine.train import seed_everything
 from usl.engine.train_step import TrainStep
 from usl.utils.compiled import torch_paths_only
-from usl.utils.op_count import count_ops, format_report
+from usl.utils import op_count
+from usl.utils.op_count import REPOSITORY, count_ops, format_report
 
 
 def step_count(objects: int, views: int, images: int, size=(64, 64), overrides=()):
@@ -39,6 +44,40 @@ def test_counter_sees_ops_syncs_and_their_lines():
     (line, n), *_ = count.sync_lines.most_common()
     assert line.startswith("tests/utils/test_op_count.py:") and n == 1
     assert "host syncs: 3" in format_report(count)
+
+
+def _compiled_in(path: Path):
+    """A function reading the device whose frames say they come from ``path``, as code installed
+    there would."""
+    namespace: dict = {}
+    exec(compile("def read(t):\n    return t.sum().item()\n", str(path), "exec"), namespace)
+    return namespace["read"]
+
+
+def test_installed_code_is_never_project_code_wherever_the_venv_lives():
+    """A venv inside the checkout (``python3 -m venv V`` at its root, or deeper): the counter names
+    the project line that called into the installed package, not the package's own line."""
+    version = f"python{sys.version_info.major}.{sys.version_info.minor}"
+    for venv in (REPOSITORY / "V", REPOSITORY / "tests" / "V"):
+        read = _compiled_in(venv / "lib" / version / "site-packages" / "torch" / "_dynamo" / "eval_frame.py")
+        with count_ops() as count:
+            read(torch.ones(3))
+        ((line, n),) = count.sync_lines.items()
+        assert line.startswith("tests/utils/test_op_count.py:") and "[scalar read]" in line, line
+
+
+def test_project_code_is_the_repository_s_own_packages():
+    site = op_count._Site()
+    assert site.project_path(str(REPOSITORY / "usl/model/ops/roi_align.py")) == "usl/model/ops/roi_align.py"
+    assert site.project_path(str(REPOSITORY / "scripts/bench/count_ops.py")) == "scripts/bench/count_ops.py"
+    assert site.project_path(op_count.__file__) is None  # the counter itself
+    assert site.project_path(torch.__file__) is None
+    assert site.project_path(str(Path(sysconfig.get_paths()["purelib"]) / "numpy/core/fromnumeric.py")) is None
+    assert site.project_path(str(REPOSITORY / "V/lib/python3.11/site-packages/usl/model/heads/shape.py")) is None
+    # a project folder holding the running environment's site-packages is installed code there
+    inside = op_count._Site(installed=(str(REPOSITORY / "usl" / "env") + "/",))
+    assert inside.project_path(str(REPOSITORY / "usl/env/lib/numpy/core/fromnumeric.py")) is None
+    assert inside.project_path(str(REPOSITORY / "usl/model/ops/roi_align.py")) == "usl/model/ops/roi_align.py"
 
 
 def test_tiny_step_budget():

@@ -12,11 +12,18 @@ runs on, so a CPU run shows what a GPU run would wait for:
 
 ``uploads`` counts ``torch.tensor``/``torch.as_tensor`` calls, which build a tensor from host data
 (a host-to-device copy on CUDA), apart from the syncs.
+
+Source lines are the innermost frame in the project's own packages (``usl``, ``pipelines``,
+``data_specs``, ``scripts``, ``tests``), never in an installed package (site-packages, the standard
+library, torch), wherever the environment lives, a venv inside the checkout included.
 """
 
 from __future__ import annotations
 
+import os
+import site
 import sys
+import sysconfig
 from collections import Counter
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -42,6 +49,8 @@ _INDEX_OPS = {aten.index.Tensor, aten.index_put.default, aten.index_put_.default
 _HOST_READS = {torch.Tensor.tolist: "tolist", torch.Tensor.numpy: "numpy"}
 _UPLOADS = {torch.tensor, torch.as_tensor}
 _THIS_FILE = str(Path(__file__).resolve())
+REPOSITORY = Path(__file__).resolve().parents[2]
+PROJECT_PACKAGES = ("usl", "pipelines", "data_specs", "scripts", "tests")
 
 
 @dataclass
@@ -73,18 +82,52 @@ def _is_sync(func, args, kwargs) -> str | None:
     return None
 
 
-class _Site:
-    """The innermost calling line under ``root`` (outside this module), as ``path:line function``."""
+def installed_dirs() -> tuple[str, ...]:
+    """Folders of installed code: site-packages (the running environment's, wherever it lives), the
+    standard library, and torch's own folder."""
+    paths = set(getattr(site, "getsitepackages", list)())
+    paths.add(site.getusersitepackages())
+    paths.update(sysconfig.get_paths()[name] for name in ("purelib", "platlib", "stdlib", "platstdlib"))
+    paths.add(str(Path(torch.__file__).parent))
+    return tuple(sorted({os.path.join(os.path.realpath(p), "") for p in paths if p}))
 
-    def __init__(self, root: Path):
-        self.root = str(root.resolve())
+
+class _Site:
+    """The innermost calling line in the project's own packages (outside this module), as
+    ``path:line function`` with the path relative to the repository."""
+
+    def __init__(
+        self,
+        root: Path = REPOSITORY,
+        packages: tuple[str, ...] = PROJECT_PACKAGES,
+        installed: tuple[str, ...] | None = None,
+    ):
+        self.root = os.path.join(os.path.realpath(root), "")
+        self.packages = tuple(os.path.join(self.root, p, "") for p in packages)
+        self.installed = installed_dirs() if installed is None else installed
+        self._known: dict[str, str | None] = {}
+
+    def project_path(self, filename: str) -> str | None:
+        """``filename`` relative to the repository when it is project code, else None."""
+        if filename not in self._known:
+            path = os.path.realpath(filename) if os.path.isabs(filename) else filename
+            parts = path.split(os.sep)
+            own = (
+                path != _THIS_FILE
+                and path.startswith(self.packages)
+                and not path.startswith(self.installed)
+                and "site-packages" not in parts
+                and "dist-packages" not in parts
+            )
+            self._known[filename] = path[len(self.root) :] if own else None
+        return self._known[filename]
 
     def __call__(self) -> str:
         frame = sys._getframe(2)
         while frame is not None:
-            name = frame.f_code.co_filename
-            if name.startswith(self.root) and name != _THIS_FILE:
-                return f"{name[len(self.root) + 1 :]}:{frame.f_lineno} {frame.f_code.co_name}"
+            path = self.project_path(frame.f_code.co_filename)
+            if path is not None:
+                return f"{path}:{frame.f_lineno} {frame.f_code.co_name}"
             frame = frame.f_back
         return "<outside>"
 
@@ -122,11 +165,10 @@ class _FunctionCounter(TorchFunctionMode):
 
 
 @contextmanager
-def count_ops(root: str | Path | None = None) -> Iterator[OpCount]:
-    """Count what the block dispatches; source lines are attributed to files under ``root``
-    (default: the repository holding this package)."""
+def count_ops() -> Iterator[OpCount]:
+    """Count what the block dispatches, attributed to the project's source lines."""
     result = OpCount()
-    site = _Site(Path(root) if root else Path(__file__).resolve().parents[2])
+    site = _Site()
     with _FunctionCounter(result, site), _DispatchCounter(result, site):
         yield result
 
