@@ -19,11 +19,11 @@ import torch
 _as_on_accelerator = False
 
 
-def to_device(values: Any, device: torch.device, dtype: torch.dtype | None = None) -> torch.Tensor:
+def to_device(values: Any, device: torch.device | str, dtype: torch.dtype | None = None) -> torch.Tensor:
     """``values`` (Python numbers or sequences, a numpy array, a CPU tensor) as a tensor on ``device``,
     copied from page-locked memory without blocking; on the CPU, the host tensor itself."""
     host = torch.as_tensor(values, dtype=dtype)
-    if device.type == "cpu" and not _as_on_accelerator:
+    if torch.device(device).type == "cpu" and not _as_on_accelerator:
         return host
     return host.pin_memory().to(device, non_blocking=True)
 
