@@ -11,7 +11,8 @@ code runs on, so a CPU run shows what a GPU run would wait for:
 * ``tolist`` and ``numpy``: a tensor's data read into Python;
 * ``upload``: a copy of host data to the device from pageable memory: ``torch.tensor(values,
   device=d)`` (also ``as_tensor``, ``asarray``, ``new_tensor``), ``t.to(d)``, ``t.cuda()``,
-  ``device_t.copy_(t)`` of a host tensor ``t``. The host waits for the device's queue to drain
+  ``device_t.copy_(t)`` of a host tensor ``t``, ``device_t[[1, 0]]`` (a list index becomes a tensor
+  on the indexed tensor's device). The host waits for the device's queue to drain
   before such a copy, whatever ``non_blocking`` says. ``OpCount.uploads`` counts every
   host-to-device copy; those from page-locked memory with ``non_blocking=True``
   (``usl.utils.transfer.to_device``, the loader's ``pin_memory``) are queued like kernels and are
@@ -47,6 +48,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 from torch.overrides import TorchFunctionMode
 from torch.utils._python_dispatch import TorchDispatchMode
@@ -189,6 +191,11 @@ def _tensors(value: Any) -> Iterator[Tensor]:
             yield from _tensors(item)
 
 
+def _lists_in(index: Any) -> bool:
+    """Whether an index holds Python lists or numpy arrays of positions (advanced indexing)."""
+    return any(isinstance(i, (list, np.ndarray)) for i in (index if isinstance(index, tuple) else (index,)))
+
+
 def _parse_to(args: tuple, kwargs: dict) -> tuple[torch.device | None, Tensor | None, bool]:
     """``Tensor.to``'s target device (None for a dtype cast), the tensor it names if any, non_blocking."""
     rest, kwargs = list(args[1:]), {k: v for k, v in kwargs.items() if k != "copy"}
@@ -264,6 +271,11 @@ class _FunctionCounter(TorchFunctionMode):
             return self._copy(func, args, kwargs)
         elif func in _FROM_VALUES or func is Tensor.new_tensor:
             return self._from_values(func, args, kwargs)
+        elif func in (Tensor.__getitem__, Tensor.__setitem__) and _lists_in(args[1]):
+            # torch makes a list index a tensor where the indexed tensor is: a copy from the host
+            accelerator = args[0].device.type != "cpu"
+            if not self._on_host(args[0], accelerator):
+                self._upload(pinned=False, non_blocking=False)
         return self._other(func, args, kwargs)
 
     def _pin(self, func, args, kwargs):

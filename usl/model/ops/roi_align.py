@@ -123,8 +123,8 @@ def roi_align_levels(
     spatial_scale = constant(tuple(float(s) for s in scales), compute_dtype, device)[level]
     offset = 0.5 if aligned else 0.0
     corners = (rois[:, 1:] * spatial_scale[:, None] - offset).T  # (4, K): x0, y0, x1, y1
-    start = corners[[1, 0]]
-    roi_size = corners[[3, 2]] - start
+    start, end = corners.unflatten(0, (2, 2)).flip(1)  # (y0, x0), (y1, x1); a list index would upload
+    roi_size = end - start
     if not aligned:
         roi_size = roi_size.clamp(min=1.0)
     bins = constant(((out_h,), (out_w,)), torch.int64, device)
