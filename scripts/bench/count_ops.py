@@ -9,16 +9,18 @@
 
 One step of the trainer's own ``TrainStep`` (forward, backward, clipping, guard, optimizer) after
 ``--warmup`` steps, counted with ``usl.utils.op_count``: ATen ops dispatched, host syncs by kind (the
-points where a CUDA run waits for the device), and the source lines causing most of each. Counts are
-deterministic, so two commits compare exactly; ``--cpu-steps`` adds the median process CPU time of
-that many uncounted steps (compare commits in one run, alternating, with OMP_NUM_THREADS=1).
+points where a CUDA run waits for the device, copies to it from pageable host memory included; a
+CPU run counts its copies as a CUDA run makes them), and the source lines causing most of each.
+Counts are deterministic, so two commits compare exactly; ``--cpu-steps`` adds the median process
+CPU time of that many uncounted steps (compare commits in one run, alternating, with OMP_NUM_THREADS=1).
 ``--predict MODE`` counts one ``USLModel.predict`` call on the batch's input views instead (what
 usl-predict and usl-eval run per batch), with the trained-from-scratch weights of the step.
 
 By default the step runs the torch paths a CUDA step runs, also on a CPU: on CPU tensors the soft
 rasterizer, mask resampling, silhouette Chamfer and NMS are compiled loops (``usl.utils.compiled``)
 that read their inputs on the host, which only the CPU pays; NMS counts its pure-torch path (CUDA
-runs torchvision's kernel instead where torchvision is installed). ``--compiled`` counts the CPU's own step.
+runs torchvision's kernel instead where torchvision is installed). ``--compiled`` counts the CPU's
+own step (no device, so no uploads).
 """
 
 from __future__ import annotations
@@ -27,7 +29,6 @@ import argparse
 import contextlib
 import statistics
 import time
-from pathlib import Path
 
 import torch
 from train import bench_step  # scripts/bench/train.py: the same step and batches it times
@@ -35,7 +36,6 @@ from train import bench_step  # scripts/bench/train.py: the same step and batche
 from usl.utils.compiled import torch_paths_only
 from usl.utils.op_count import count_ops, format_report
 
-ROOT = Path(__file__).resolve().parents[2]
 
 SIZE = {"tiny": (128, 128), "tiny_long": (128, 128), "hypersim": (192, 256), "scannet": (242, 324)}
 OBJECTS = {"tiny": 2, "tiny_long": 2, "hypersim": 20, "scannet": 8}
@@ -67,7 +67,7 @@ def main() -> None:
         step(batches[iteration % 2])
     frames = [sample.frame for sample in batches[args.warmup % 2]]
     paths = contextlib.nullcontext() if args.compiled else torch_paths_only()
-    with paths, count_ops(ROOT) as count:
+    with paths, count_ops(as_on_accelerator=not args.compiled) as count:
         if args.predict:
             with torch.no_grad():
                 step.model.predict(frames, args.predict)

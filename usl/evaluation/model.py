@@ -11,13 +11,13 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Sequence
 
-import torch
 
 from usl.data.frames import FrameData
 from usl.data.transforms import resize_frame
 from usl.evaluation.types import EvalInput
 from usl.model.outputs import ObjectPredictions
 from usl.errors import UslError
+from usl.utils.transfer import to_device
 
 
 def frames_for_model(frames: Sequence[FrameData], max_size: int) -> list[FrameData]:
@@ -31,9 +31,7 @@ def boxes_to_frame(
     if model_size == frame_size:
         return pred
     sx, sy = frame_size[1] / model_size[1], frame_size[0] / model_size[0]
-    return replace(
-        pred, boxes=pred.boxes * torch.tensor([sx, sy, sx, sy], dtype=pred.boxes.dtype, device=pred.boxes.device)
-    )
+    return replace(pred, boxes=pred.boxes * to_device([sx, sy, sx, sy], pred.boxes.device, pred.boxes.dtype))
 
 
 @dataclass

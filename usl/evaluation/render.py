@@ -29,6 +29,7 @@ from usl.geometry.cameras import project, relative_transform, transform_points
 from usl.metrics import box_giou, depth_l1, mask_iou, masks_to_boxes
 from usl.render import HardRender, rasterize_hard
 from usl.render.screen import DEFAULT_NEAR
+from usl.utils.transfer import to_device
 
 Tensor = torch.Tensor
 
@@ -180,7 +181,7 @@ def _score_rendered(
 ) -> None:
     device = result.verts.device
     index = torch.tensor([p for p, _, _, _ in todo])
-    mesh = torch.tensor([m for _, m, _, _ in todo], device=device)
+    mesh = to_device([m for _, m, _, _ in todo], device)
     pred_masks = result.render.masks[mesh]
     true_masks = torch.stack([views[v].masks[t] for _, _, v, t in todo])
     true_boxes = torch.stack([views[v].boxes[t] for _, _, v, t in todo])

@@ -15,6 +15,7 @@ import torch
 
 from usl.data.true_meshes import true_meshes_in_camera  # noqa: F401  (re-exported for evaluation)
 from usl.records import decode_mask, decoding, frame_K, frame_pose
+from usl.utils.transfer import to_device
 
 Tensor = torch.Tensor
 
@@ -56,14 +57,14 @@ def decode_view_targets(
     return ViewTargets(
         position=position,
         view_id=int(row["view_id"]),
-        K=torch.from_numpy(frame_K(row)).float().to(device),
-        cam_to_world=torch.from_numpy(frame_pose(row)).to(device),
+        K=to_device(frame_K(row), device, torch.float32),
+        cam_to_world=to_device(frame_pose(row), device),
         height=height,
         width=width,
-        instance_ids=torch.tensor([int(i["instance_id"]) for i in instances], dtype=torch.int64, device=device),
-        masks=masks.to(device),
-        boxes=torch.tensor([list(i["box_xyxy"]) for i in instances], dtype=torch.float32).reshape(-1, 4).to(device),
-        depth_min=torch.tensor([float(i["depth_min"]) for i in instances], dtype=torch.float32, device=device),
+        instance_ids=to_device([int(i["instance_id"]) for i in instances], device, torch.int64),
+        masks=to_device(masks, device),
+        boxes=to_device([list(i["box_xyxy"]) for i in instances], device, torch.float32).reshape(-1, 4),
+        depth_min=to_device([float(i["depth_min"]) for i in instances], device, torch.float32),
     )
 
 

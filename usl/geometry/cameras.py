@@ -11,6 +11,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from usl.utils.transfer import to_device
+
 Tensor = torch.Tensor
 
 # Points with a homogeneous depth below this are treated as behind the camera.
@@ -93,7 +95,7 @@ def scale_intrinsics(K: Tensor, sx: float, sy: float) -> Tensor:
     With pixel centres at +0.5 the image spans [0, W]x[0, H], so resizing is a pure
     scale of the pixel frame: ``K' = diag(sx, sy, 1) @ K`` (no half-pixel shift).
     """
-    S = torch.diag(torch.tensor([sx, sy, 1.0], dtype=K.dtype, device=K.device))
+    S = torch.diag(to_device([sx, sy, 1.0], K.device, K.dtype))
     return S @ K
 
 

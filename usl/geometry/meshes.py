@@ -14,8 +14,17 @@ from collections.abc import Sequence
 import torch
 
 from usl.geometry.topology import uniform_laplacian, unique_edges
+from usl.utils.transfer import to_device
 
 Tensor = torch.Tensor
+
+
+def _counts(counts: list[int], device: torch.device) -> Tensor:
+    """(B,) int64 ``counts`` on ``device``: filled there when all are equal (the shared topology),
+    else copied over without a wait."""
+    if counts and all(c == counts[0] for c in counts):
+        return torch.full((len(counts),), counts[0], dtype=torch.int64, device=device)
+    return to_device(counts, device, torch.int64)
 
 
 class _Topology:
@@ -27,8 +36,8 @@ class _Topology:
         self.verts_counts = verts_counts
         self.faces_counts = faces_counts
         self.template = template  # (F, 3) shared local faces, or None
-        self.num_verts = torch.tensor(verts_counts, dtype=torch.int64, device=device)
-        self.num_faces = torch.tensor(faces_counts, dtype=torch.int64, device=device)
+        self.num_verts = _counts(verts_counts, device)
+        self.num_faces = _counts(faces_counts, device)
         mesh_ids = torch.arange(len(verts_counts), device=device)
         # output sizes known on the host: no device read
         self.verts_to_mesh = torch.repeat_interleave(mesh_ids, self.num_verts, output_size=sum(verts_counts))
@@ -91,8 +100,8 @@ class Meshes:
         if all(c == counts[0] for c in counts) and all(f is first or torch.equal(f, first) for f in faces):
             topology = _Topology.shared(first.long(), len(verts), counts[0])
         else:
-            offsets = torch.tensor([0] + counts[:-1], device=first.device).cumsum(0)
-            sizes = torch.tensor([f.shape[0] for f in faces], device=first.device)
+            offsets = to_device([0] + counts[:-1], first.device).cumsum(0)
+            sizes = to_device([f.shape[0] for f in faces], first.device)
             packed = torch.cat([f.long() for f in faces]) + torch.repeat_interleave(offsets, sizes)[:, None]
             topology = _Topology(packed, counts, [int(f.shape[0]) for f in faces], None)
         self._init(torch.cat(list(verts)), topology)

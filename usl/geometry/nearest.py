@@ -16,6 +16,7 @@ import torch
 
 from usl.geometry.kdtree_search import nearest_in_tree
 from usl.utils.compiled import compiled, serves
+from usl.utils.transfer import to_device
 
 Tensor = torch.Tensor
 
@@ -110,7 +111,7 @@ def kdtree_indices(x: Tensor, y: Tensor, y_valid: Tensor | None = None) -> Tenso
         if len(keep):
             tree = _kdtree(ys[b][keep])
             out[b] = keep[nearest_in_tree(_kdtree(xs[b]), tree) if blocked else tree.query(xs[b], workers=workers)[1]]
-    return torch.from_numpy(out).to(x.device)
+    return to_device(out, x.device)
 
 
 def _kdtree(points: np.ndarray):

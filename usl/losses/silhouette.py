@@ -12,6 +12,7 @@ import torch.nn.functional as F
 
 from usl.geometry.cameras import project
 from usl.geometry.nearest import DEFAULT_MAX_ELEMENTS, chamfer_directions, lengths_to_mask
+from usl.utils.transfer import constant, to_device
 
 Tensor = torch.Tensor
 
@@ -62,7 +63,7 @@ def sample_mask_points(
         offsets = torch.full((num_masks, k, 2), 0.5, device=device)
     points = torch.stack([idx % width, idx // width], dim=-1) + offsets
     if boxes is not None:
-        scale = (boxes[:, 2:] - boxes[:, :2]) / torch.tensor([width, height], dtype=boxes.dtype, device=device)
+        scale = (boxes[:, 2:] - boxes[:, :2]) / constant((width, height), boxes.dtype, device)
         points = boxes[:, None, :2] + points * scale[:, None, :]
     points = torch.where(lengths_to_mask(lengths, k).unsqueeze(-1), points, 0.0)
     if k < num_points:
@@ -72,7 +73,10 @@ def sample_mask_points(
 
 def _image_scale(image_size: Tensor | tuple[int, int], num_pairs: int, like: Tensor) -> Tensor:
     """(P,) 1 / max(H, W) per pair."""
-    size = torch.as_tensor(image_size, dtype=like.dtype, device=like.device)
+    if isinstance(image_size, Tensor):
+        size = image_size.to(device=like.device, dtype=like.dtype)
+    else:
+        size = to_device(image_size, like.device, like.dtype)
     if size.dim() == 1:
         size = size.expand(num_pairs, 2)
     return 1.0 / size.max(dim=-1).values

@@ -27,6 +27,7 @@ from usl.model.config import LossConfig
 from usl.data.samples import MultiViewSample
 from usl.geometry import Meshes, MeshTemplate, sample_points_in_groups
 from usl.geometry.cameras import relative_transform, transform_points
+from usl.utils.transfer import to_device
 from usl.losses import (
     edge_length_per_mesh,
     l2d_loss,
@@ -155,7 +156,7 @@ def multiview_silhouette_loss(
             **other_views,
         }
     )
-    stats["dist_factor"] = l3d.new_tensor(dist_factor)
+    stats["dist_factor"] = l3d.new_full((), dist_factor)
     return SilhouetteLoss(l3d, dist_part, l3d - dist_part, stats)
 
 
@@ -207,8 +208,8 @@ def _gather_pairs(
         intrinsics += [view.K for view in sample.views]
         present += [view.present for view in sample.views]
         sizes += [view.size for view in sample.views]
-    pair_object, pair_view, pair_sample, is_input = torch.tensor(pair_rows, device=device).T
-    poses, input_views = torch.stack(poses), torch.tensor(input_views, device=device)
+    pair_object, pair_view, pair_sample, is_input = to_device(pair_rows, device).T
+    poses, input_views = torch.stack(poses), to_device(input_views, device)
     to_view = relative_transform(poses[input_views], poses).float()[pair_view]  # (P, 4, 4)
     present = torch.cat(present).bool()
     per_sample = torch.zeros(batch_size, dtype=torch.long, device=device).index_add(0, pair_sample, present.long())
@@ -219,7 +220,7 @@ def _gather_pairs(
         masks=_join_masks(masks),
         occluders=_join_masks(occluders) if cfg.ignore_occluders else None,
         K=torch.stack(intrinsics).float()[pair_view],
-        sizes=torch.tensor(sizes, device=device)[pair_view],
+        sizes=to_device(sizes, device)[pair_view],
         present=present,
         weight=present.float() / (per_sample[pair_sample].clamp(min=1) * batch_size),
         is_input=is_input.bool(),
@@ -274,12 +275,11 @@ def shape_regularizers(
             per_object["offset_l2"] = offset_l2_per_mesh(torch.stack(offsets)).sum(dim=0)  # summed over stages
     zero = verts_cube.sum() * 0.0
     batch = len(counts)
+    per_image = to_device(counts, verts_cube.device)
     image = torch.repeat_interleave(
-        torch.arange(batch, device=verts_cube.device),
-        torch.tensor(counts, device=verts_cube.device),
-        output_size=verts_cube.shape[0],
+        torch.arange(batch, device=verts_cube.device), per_image, output_size=verts_cube.shape[0]
     )
-    objects = torch.tensor(counts, dtype=torch.float32, device=verts_cube.device).clamp(min=1)
+    objects = per_image.to(torch.float32).clamp(min=1)
     result: dict[str, Tensor | None] = {}
     for name in REGULARIZERS:
         if not need.get(name):

@@ -21,6 +21,8 @@ import torch
 from PIL import Image
 
 from data_specs import coco_category_ids
+from usl.utils.transfer import constant, to_device
+
 from .backbone import IMAGENET_MEAN, IMAGENET_STD, BackboneConfig, ResNetConfig
 from .detector import DetectorConfig, MaskRCNN, ROIHeadsConfig
 from .detector.mask_head import paste_masks_in_image
@@ -131,9 +133,9 @@ class InstanceSegmenter:
             raise ValueError(f"images must be RGB uint8 (H, W, 3), got {image.dtype} {image.shape}")
         height, width = resized_shape(image.shape[0], image.shape[1], self.cfg.min_size, self.cfg.max_size)
         resized = np.asarray(Image.fromarray(image).resize((width, height), Image.BILINEAR))
-        pixels = torch.from_numpy(np.array(resized)).to(self.device).permute(2, 0, 1).float()
-        mean = pixels.new_tensor(IMAGENET_MEAN)[:, None, None]
-        std = pixels.new_tensor(IMAGENET_STD)[:, None, None]
+        pixels = to_device(np.array(resized), self.device).permute(2, 0, 1).float()
+        mean = constant(IMAGENET_MEAN, pixels.dtype, pixels.device)[:, None, None]
+        std = constant(IMAGENET_STD, pixels.dtype, pixels.device)[:, None, None]
         return (pixels / 255.0 - mean) / std
 
     @torch.no_grad()

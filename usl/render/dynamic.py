@@ -33,6 +33,7 @@ from usl.metrics.boxes import masks_to_boxes
 from usl.render.resample import resample_masks_area, stack_masks
 from usl.render.screen import check_packed_inputs, project_faces
 from usl.render.soft import SoftRasterSettings, rasterize_soft
+from usl.utils.transfer import constant, to_device
 
 Tensor = torch.Tensor
 
@@ -93,7 +94,7 @@ def render_dynamic(
         raise ValueError(f"render_dynamic: K has {num_pairs} pairs but ignore_masks has {len(ignore_masks)}")
     faces, face_window = faces.long(), face_window.long()
     if image_sizes is None:
-        image_sizes = _mask_sizes(true_masks, num_pairs)
+        image_sizes = _mask_sizes(true_masks, num_pairs, K.device)
     image_sizes = image_sizes.to(device=K.device, dtype=torch.float64)
     masks = stack_masks(true_masks).to(K.device)
     with torch.no_grad():
@@ -118,10 +119,10 @@ def render_dynamic(
     )
 
 
-def _mask_sizes(masks: Tensor | Sequence[Tensor], num_pairs: int) -> Tensor:
+def _mask_sizes(masks: Tensor | Sequence[Tensor], num_pairs: int, device: torch.device) -> Tensor:
     if isinstance(masks, Tensor):
-        return torch.tensor(masks.shape[-2:], dtype=torch.float64).expand(num_pairs, 2)
-    return torch.tensor([tuple(m.shape[-2:]) for m in masks], dtype=torch.float64).reshape(num_pairs, 2)
+        return constant(tuple(masks.shape[-2:]), torch.float64, device).expand(num_pairs, 2)
+    return to_device([tuple(m.shape[-2:]) for m in masks], device, torch.float64).reshape(num_pairs, 2)
 
 
 def mask_boxes(masks: Tensor) -> Tensor:
@@ -137,7 +138,7 @@ def mask_boxes(masks: Tensor) -> Tensor:
 
 def _empty_boxes(count: int, device: torch.device) -> Tensor:
     inf = torch.inf
-    return torch.tensor([inf, inf, -inf, -inf], dtype=torch.float64, device=device).expand(count, 4)
+    return constant((inf, inf, -inf, -inf), torch.float64, device).expand(count, 4)
 
 
 def _empty_if_degenerate(boxes: Tensor) -> Tensor:

@@ -11,6 +11,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from usl.utils.transfer import to_device
+
 from ..ops import Box2BoxTransform, batched_nms, kept_by_image
 from .config import BoxHeadConfig
 from .structures import Instances
@@ -79,7 +81,7 @@ class FastRCNNOutputLayers(nn.Module):
         else:
             starts = itertools.accumulate((len(p) for p in proposals[:-1]), initial=0)
             rows = [row for start, n in zip(starts, num_foreground) for row in range(start, start + n)]
-            foreground = torch.tensor(rows, dtype=torch.long, device=gt_classes.device)  # one upload
+            foreground = to_device(rows, gt_classes.device, torch.long)  # one upload, queued without a wait
         predicted = deltas.view(len(deltas), self.num_classes, 4)[foreground, gt_classes[foreground]]
         target = self.box2box.get_deltas(proposal_boxes[foreground], gt_boxes[foreground])
         loss_box = F.smooth_l1_loss(predicted, target, beta=self.cfg.smooth_l1_beta, reduction="sum")
@@ -109,10 +111,10 @@ class FastRCNNOutputLayers(nn.Module):
             return []
         device, num_classes = logits.device, self.num_classes
         counts = [len(p) for p in proposals]
-        image = torch.as_tensor(np.repeat(np.arange(len(proposals)), counts), device=device)  # row -> image
+        image = to_device(np.repeat(np.arange(len(proposals)), counts), device)  # row -> image
         boxes = self.box2box.apply_deltas(deltas, torch.cat([p.proposal_boxes for p in proposals]))
         sizes = [(w, h, w, h) for h, w in (p.image_size for p in proposals)]
-        limits = torch.tensor(sizes, dtype=boxes.dtype, device=device)[image]  # clip_boxes with each row's image
+        limits = to_device(sizes, device, boxes.dtype)[image]  # clip_boxes with each row's image
         boxes = torch.minimum(boxes.view(-1, num_classes, 4).clamp(min=0), limits[:, None])
         scores = F.softmax(logits, dim=1)[:, :-1]
         finite = torch.isfinite(boxes).all(dim=2) & torch.isfinite(scores)

@@ -8,6 +8,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from usl.utils.transfer import to_device
+
 from ..backbone import ShapeSpec
 from ..ops import AnchorGenerator, Box2BoxTransform, batched_nms, kept_by_image, nonempty_boxes, padded_match_quality
 from .config import RPNConfig
@@ -138,7 +140,7 @@ class RPN(nn.Module):
         """Clip, drop empty boxes, NMS per (image, level) and top-k per image, for all images in one
         NMS call: two host reads (the boxes kept, the count per image) whatever the batch size."""
         num_images, per_image = scores.shape
-        sizes = torch.tensor(image_sizes, dtype=boxes.dtype, device=boxes.device)  # (N, 2) height, width
+        sizes = to_device(image_sizes, boxes.device, boxes.dtype)  # (N, 2) height, width
         high = sizes.flip(1).repeat(1, 2)[:, None]  # (N, 1, 4): width, height, width, height
         boxes = torch.minimum(boxes.clamp(min=0), high).reshape(-1, 4)
         scores = scores.reshape(-1)

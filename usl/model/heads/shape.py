@@ -27,6 +27,7 @@ from torch import nn
 from usl.model.config import ShapeHeadConfig
 from usl.geometry import MeshTemplate, ico_sphere
 from usl.model.backbone import ShapeSpec
+from usl.utils.transfer import to_device
 
 from .graph_conv import GraphConv
 from .vertex_features import roimap_features, single_level_pooler, vertalign_features
@@ -148,7 +149,7 @@ class ShapeHead(nn.Module):
         flat_boxes = torch.cat(boxes).float()
         image_index = torch.repeat_interleave(
             torch.arange(len(boxes), device=flat_boxes.device),
-            torch.tensor([len(b) for b in boxes], device=flat_boxes.device),
+            to_device([len(b) for b in boxes], flat_boxes.device),
             output_size=len(flat_boxes),
         )
         verts = self.sphere_verts.expand(len(flat_boxes), -1, -1)

@@ -14,6 +14,7 @@ import torch
 import torch.nn.functional as F
 
 from usl.model.detector import MultiScaleRoIAlign
+from usl.utils.transfer import constant
 
 Tensor = torch.Tensor
 
@@ -61,7 +62,7 @@ def _sample_bilinear(feature_map: Tensor, image: Tensor, xy: Tensor) -> Tensor:
     corner = xy.floor()
     frac = xy - corner
     # the four taps (dx, dy) = (0, 0), (1, 0), (0, 1), (1, 1) stacked: one gather, one weighted sum
-    step = torch.tensor([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0], [1.0, 1.0]], device=xy.device, dtype=xy.dtype)
+    step = constant(((0.0, 0.0), (1.0, 0.0), (0.0, 1.0), (1.0, 1.0)), xy.dtype, xy.device)
     x, y = (corner + step[:, None]).unbind(-1)  # (4, P) each
     inside = (x >= 0) & (x <= width - 1) & (y >= 0) & (y <= height - 1)
     along_x, along_y = torch.stack([1 - frac, frac]).unbind(-1)  # (2, P) each: weights of the d = 0, 1 taps

@@ -11,6 +11,8 @@ from typing import Sequence
 
 import torch
 
+from usl.utils.transfer import to_device
+
 Tensor = torch.Tensor
 
 # Largest log-scale step a predicted delta may take: a box may grow at most
@@ -49,7 +51,7 @@ def stack_padded(boxes: Sequence[Tensor]) -> tuple[Tensor, Tensor]:
     the ``(N, max K_i)`` mask of real rows: batched maths over images without a per-image loop."""
     longest = max((len(b) for b in boxes), default=0)
     padded = torch.stack([torch.nn.functional.pad(b, (0, 0, 0, longest - len(b))) for b in boxes])
-    lengths = torch.tensor([len(b) for b in boxes], device=padded.device)
+    lengths = to_device([len(b) for b in boxes], padded.device)
     return padded, torch.arange(longest, device=padded.device) < lengths[:, None]
 
 

@@ -31,6 +31,8 @@ import numpy as np
 import torch
 from torch import nn
 
+from usl.utils.transfer import constant, to_device
+
 from .autocast import autocast_off
 
 Tensor = torch.Tensor
@@ -116,16 +118,16 @@ def roi_align_levels(
     level = level.to(device)
     batch_index = rois[:, 0].long()
     # Both axes at once: row 0 the y axis, row 1 the x axis, (2, K) each.
-    shapes = torch.tensor([[m.shape[2] for m in inputs], [m.shape[3] for m in inputs]], device=device)
-    map_size = shapes[:, level]
-    spatial_scale = torch.tensor(list(scales), dtype=compute_dtype, device=device)[level]
+    heights, widths = tuple(m.shape[2] for m in inputs), tuple(m.shape[3] for m in inputs)
+    map_size = constant((heights, widths), torch.int64, device)[:, level]
+    spatial_scale = constant(tuple(float(s) for s in scales), compute_dtype, device)[level]
     offset = 0.5 if aligned else 0.0
     corners = (rois[:, 1:] * spatial_scale[:, None] - offset).T  # (4, K): x0, y0, x1, y1
-    start = corners[[1, 0]]
-    roi_size = corners[[3, 2]] - start
+    start, end = corners.unflatten(0, (2, 2)).flip(1)  # (y0, x0), (y1, x1); a list index would upload
+    roi_size = end - start
     if not aligned:
         roi_size = roi_size.clamp(min=1.0)
-    bins = torch.tensor([[out_h], [out_w]], device=device)
+    bins = constant(((out_h,), (out_w,)), torch.int64, device)
     grid = _grid(roi_size, bins, sampling_ratio)
     # The only device-to-host transfer: the sizes every tensor shape below depends on.
     sizes = torch.cat([roi_size, grid.to(roi_size.dtype), map_size.to(roi_size.dtype)])  # (6, K)
@@ -145,7 +147,7 @@ def roi_align_levels(
     # Rows/columns past the map's edge only occur where the matrices are zero; clamp them in.
     ids = torch.minimum(samples.start[..., None] + torch.arange(window, device=device), map_size[..., None] - 1)
     # where each (level, image) map starts in the channels-last concatenation of all levels
-    pixels = torch.tensor([m.shape[2] * m.shape[3] for m in inputs], device=device)
+    pixels = constant(tuple(h * w for h, w in zip(heights, widths)), torch.int64, device)
     level_start = torch.cumsum(pixels * num_images, 0) - pixels * num_images
     map_start = level_start[level] + batch_index * pixels[level]
     window_rows = map_start[:, None] + ids[0] * map_size[1, :, None]  # (K, window) first pixel of each row
@@ -154,7 +156,7 @@ def roi_align_levels(
     shapes = [(len(index), int(h), int(w)) for index, h, w in plan]
     rows_at, cols_at = _window_entries(plan, window)
     # one upload: the plan's RoI order and where each chunk's window pixels are in window_rows/col_ids
-    uploaded = torch.from_numpy(np.concatenate([*(index for index, _, _ in plan), rows_at, cols_at])).to(device)
+    uploaded = to_device(np.concatenate([*(index for index, _, _ in plan), rows_at, cols_at]), device)
     order, rows_at, cols_at = uploaded.split([num_rois, len(rows_at), len(cols_at)])
     pixels = window_rows.view(-1).index_select(0, rows_at) + ids[1].reshape(-1).index_select(0, cols_at)
     layout = _ChunkLayout(
