@@ -240,7 +240,7 @@ def test_a_bad_scan_among_good_ones_is_a_recorded_skip_and_the_build_completes(s
         str(synthetic.labels),
         "--stride",
         "2",
-        "--size",
+        "--resolution",
         "48x36",
     ]
     assert main(args + ["--no-skip-bad-scenes"]) == 2
