@@ -6,7 +6,7 @@ only the CPU pays."""
 
 import torch
 
-from usl.engine.synthetic import synthetic_config, synthetic_sample
+from tests.data.synthetic_samples import synthetic_config, synthetic_sample
 from usl.engine.distributed import DistInfo
 from usl.engine.train import seed_everything
 from usl.engine.train_step import TrainStep
