@@ -2,7 +2,7 @@
 #   train_with_procs PROCS usl-train-arguments...
 # With PROCS > 1 each process takes train.batch_size / PROCS of the recipe's images (the recipe's
 # batch is global): the same batches as one process, one process per core (gloo). The caller
-# passes the recipe's batch as USL_TRAIN_BATCH (default 4, tiny's): `recipe_batch` reads it.
+# passes the recipe's batch as USL_TRAIN_BATCH (`recipe_batch` reads it; 4 when unset).
 #   recipe_batch RECIPE [key=value ...]   # train.batch_size of the recipe with the overrides
 recipe_batch() {
   python3 -c "import sys; from usl.config import load_config; print(load_config(sys.argv[1], sys.argv[2:]).train.batch_size)" "$@"
