@@ -87,9 +87,14 @@ def test_usl_eval_ignores_them_with_one_line(old_run, tmp_path, capsys):
     assert _warning_lines(err) == [f"usl-eval: warning: {checkpoint}: {NOTICE}"]
 
 
-def test_usl_train_resume_ignores_them_with_one_line(old_run, capsys):
-    """A resumed run continues without them (the line says so); its config.yaml no longer lists them."""
+def test_usl_train_resume_ignores_them_with_one_line(old_run, capsys, monkeypatch):
+    """A resumed run continues without them (the line says so, once for all torchrun's processes);
+    its config.yaml no longer lists them."""
     run, checkpoint, _ = old_run
+    monkeypatch.setenv("RANK", "1")
+    assert train_main(["--resume", str(checkpoint), "--print-config"]) == 0
+    assert _warning_lines(capsys.readouterr().err) == []
+    monkeypatch.setenv("RANK", "0")
     assert train_main(["--resume", str(checkpoint), "--print-config"]) == 0
     out, err = capsys.readouterr()
     assert _warning_lines(err) == [f"usl-train: warning: {checkpoint}: {NOTICE}"]

@@ -112,15 +112,16 @@ def resolution(text: str) -> tuple[int, int]:
 
 
 @contextlib.contextmanager
-def warning_lines(command: str) -> Iterator[None]:
-    """Show each ``UslWarning`` as one ``COMMAND: warning: MESSAGE`` line on stderr, as it happens;
-    other warnings as Python shows them."""
+def warning_lines(command: str, show_usl_warnings: bool = True) -> Iterator[None]:
+    """Show each ``UslWarning`` as one ``COMMAND: warning: MESSAGE`` line on stderr, as it happens
+    (or not at all: ``show_usl_warnings=False``); other warnings as Python shows them."""
     with warnings.catch_warnings():
         show = warnings.showwarning
 
         def show_line(message, category, filename, lineno, file=None, line=None):  # type: ignore[no-untyped-def]
             if issubclass(category, UslWarning):
-                print(f"{command}: warning: {message}", file=sys.stderr)
+                if show_usl_warnings:
+                    print(f"{command}: warning: {message}", file=sys.stderr)
             else:
                 show(message, category, filename, lineno, file, line)
 

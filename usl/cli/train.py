@@ -19,6 +19,7 @@ metric against iterations) and ``checkpoints/`` (``usl.engine.checkpoint``).
 from __future__ import annotations
 
 import argparse
+import os
 import re
 import sys
 from pathlib import Path
@@ -132,7 +133,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     from usl.engine.checkpoint import CheckpointError
 
     try:
-        with warning_lines(COMMAND):  # e.g. a resumed checkpoint's saved keys that this usl no longer has
+        # e.g. a resumed checkpoint's saved keys that this usl no longer has: every process of a
+        # torchrun training reads the checkpoint, the first one says so
+        with warning_lines(COMMAND, show_usl_warnings=os.environ.get("RANK", "0") == "0"):
             run(args)
     except (ConfigError, CheckpointError, UslError) as exc:
         print(f"{COMMAND}: error: {error_line(exc)}", file=sys.stderr)
