@@ -170,8 +170,8 @@ def every_option() -> frozenset[str]:
 
 
 def option_problems(page: Page) -> list[str]:
-    """``--flag`` (or ``--flag VALUE``) in prose: an option of a command the section (or the page's
-    first line naming one) talks about, with a value that parser accepts."""
+    """``--flag`` (or ``--flag VALUE``) in prose: an option of a command its section or page names,
+    with a value that command's parser accepts."""
     every = every_option()
     problems = []
     for span in page.spans:
