@@ -8,11 +8,10 @@
 * ``warning_lines``: a ``usl.errors.UslWarning`` raised while it is active prints as one
   ``COMMAND: warning: ...`` line.
 
-This module imports only the standard library and ``usl.errors`` (which imports nothing): ``--help``
-must answer before torch loads, so
-every CLI parses its arguments first and imports the heavy modules afterwards. It lives in
-``usl`` so that the pipelines (which may import usl) and usl (which never imports pipelines)
-share it.
+This module imports only the standard library and ``usl.errors`` (which imports nothing):
+``--help`` must answer before torch loads, so every CLI parses its arguments first and imports the
+heavy modules afterwards. It lives in ``usl`` so that the pipelines (which may import usl) and usl
+(which never imports pipelines) share it.
 """
 
 from __future__ import annotations
