@@ -7,12 +7,14 @@ defaults; ``_base_: other.yaml`` inherits another recipe first. Overrides use do
 (``optim.lr=0.01``, ``model.shape.num_stages=1``) and YAML values (``data.root=/data/hs``,
 ``optim.steps=[60000,75000]``). Unknown keys and ill-typed values are errors that name the key
 and the file, so a typo never silently trains with a default. The resolved config (every field)
-is saved in the run folder and in each checkpoint; the keys of options since removed
-(``REMOVED_OPTIONS``) still load there at their "off" value.
+is saved in the run folder and in each checkpoint. A saved config may hold keys this version no
+longer has (options since removed, docs/experiments/removed-options.md): ``saved_config`` ignores
+them with one warning naming them, so old checkpoints still evaluate, predict and resume.
 """
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping, Sequence
@@ -23,12 +25,13 @@ from usl.records.atomic import write_text_atomic
 from usl.config_io import (  # noqa: F401  (re-exported: usl.config is where callers import them)
     ConfigError,
     deep_merge,
-    drop_removed_keys,
+    drop_unknown_keys,
     from_dict,
     parse_overrides,
     read_yaml_config,
     to_dict,
 )
+from usl.errors import UslWarning
 from usl.data.config import DataConfig
 from usl.engine.config import OptimConfig, TrainConfig, ValidationConfig
 from usl.model.config import DETECTOR_PRESETS, LossConfig, ModelConfig
@@ -92,27 +95,8 @@ def _applies(base: Mapping[str, Any], override: str) -> bool:
     return True
 
 
-# Options measured, found not to help and removed (docs/experiments/removed-options.md names the commit
-# that has them), with what to do instead. Every saved config (run folder, checkpoint) carries every
-# field, so one written before the removal holds them at their "off" value, and still loads.
-_INSTEAD = {
-    **{
-        f"data.color_jitter.{name}": "the input images are used as stored"
-        for name in ("brightness", "contrast", "saturation", "hue")
-    },
-    "model.shape.category_templates": "every object starts from the ico-sphere",
-    "model.shape.global_basis": "the global stage predicts one offset per vertex",
-    "model.shape.feature": "set model.shape.features, a list of map names (e.g. [p2])",
-    "model.detector.backbone.resnet.weights": "set model.init_weights (a whole-detector or ResNet checkpoint)",
-    "loss.dist_vertices": "l_dist uses the surface samples only",
-    "loss.weights.depth_laplacian": "use loss.weights.laplacian or loss.weights.normal",
-}
-REMOVED_OPTIONS = {key: f"{instead} (docs/experiments/removed-options.md)" for key, instead in _INSTEAD.items()}
-
-
 def config_from_dict(data: Mapping[str, Any], where: str = "config") -> Config:
-    """A full ``Config`` from a (possibly partial) nested dict over the defaults."""
-    data = drop_removed_keys(data, REMOVED_OPTIONS, where)
+    """A full ``Config`` from a (possibly partial) nested dict over the defaults; an unknown key is an error."""
     defaults = to_dict(Config())
     model = data.get("model") if isinstance(data.get("model"), Mapping) else {}
     preset = model.get("detector_preset", "default")
@@ -124,6 +108,20 @@ def config_from_dict(data: Mapping[str, Any], where: str = "config") -> Config:
         return from_dict(Config, merged, "config")
     except ConfigError as exc:
         raise ConfigError(f"{where}: {exc}") from None
+
+
+def saved_config(data: Mapping[str, Any], where: str) -> Config:
+    """The config a checkpoint was saved with. Keys this version no longer has (options measured and
+    removed since) are dropped with one ``UslWarning`` naming them: the weights are what a checkpoint
+    is kept for, and a saved file cannot be edited the way a recipe or an override can."""
+    known, unknown = drop_unknown_keys(Config, data)
+    if unknown:
+        warnings.warn(
+            f"{where}: ignoring saved config key(s) this usl no longer has: {', '.join(unknown)}",
+            UslWarning,
+            stacklevel=2,
+        )
+    return config_from_dict(known, where)
 
 
 def dump_config(config: Config) -> str:

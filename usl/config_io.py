@@ -157,29 +157,32 @@ def deep_merge(base: Mapping[str, Any], update: Mapping[str, Any]) -> dict[str, 
     return merged
 
 
-def drop_removed_keys(data: Mapping[str, Any], removed: Mapping[str, str], where: str) -> dict[str, Any]:
-    """``data`` without the dotted ``removed`` keys, each allowed only at its "off" value (false, 0, null
-    or empty): configs saved before a removal carry every field, and still mean what they meant. A
-    removed key set to anything else is an error naming it and ``removed[key]``, the way forward."""
-    data = copy.deepcopy(dict(data))
-    for key, instead in removed.items():
-        *path, name = key.split(".")
-        sections = [data]
-        for part in path:
-            if not isinstance(sections[-1].get(part), Mapping):
-                break
-            sections.append(sections[-1][part])
-        else:
-            if name not in sections[-1]:
-                continue
-            value = sections[-1].pop(name)
-            if value:
-                raise ConfigError(f"{where}: {key}={value!r} was removed: {instead}")
-            for section, part in zip(reversed(sections[:-1]), reversed(path)):  # drop what it left empty
-                if section[part]:
-                    break
-                del section[part]
-    return data
+def drop_unknown_keys(cls: type, data: Mapping[str, Any]) -> tuple[dict[str, Any], list[str]]:
+    """``data`` without the keys no field of dataclass ``cls`` (or of the dataclasses nested in it)
+    has, and those keys, dotted: what a config saved by an older version holds that this one lacks."""
+    known: dict[str, Any] = {}
+    unknown: list[str] = []
+    hints = typing.get_type_hints(cls)
+    names = {f.name for f in dataclasses.fields(cls) if f.init}
+    for key, value in data.items():
+        if key not in names:
+            unknown.append(str(key))
+            continue
+        section = _dataclass_of(hints[key])
+        if section is not None and isinstance(value, Mapping):
+            value, inner = drop_unknown_keys(section, value)
+            unknown.extend(f"{key}.{name}" for name in inner)
+        known[key] = copy.deepcopy(value)
+    return known, unknown
+
+
+def _dataclass_of(tp: Any) -> type | None:
+    """The dataclass a field's annotation names (also inside ``X | None``), else None."""
+    if dataclasses.is_dataclass(tp):
+        return tp
+    if typing.get_origin(tp) in (typing.Union, types.UnionType):
+        return next((a for a in typing.get_args(tp) if dataclasses.is_dataclass(a)), None)
+    return None
 
 
 def parse_overrides(overrides: Sequence[str]) -> dict[str, Any]:

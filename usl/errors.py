@@ -19,3 +19,8 @@ def error_line(exc: BaseException) -> str:
         last = text.strip().splitlines()[-1]
         text = last.split(": ", 1)[1] if last.startswith(("usl.", "UslError")) and ": " in last else last
     return text
+
+
+class UslWarning(UserWarning):
+    """Something the user should know but that stops nothing (a value assumed, a saved setting
+    ignored): the CLIs print it as one ``COMMAND: warning: ...`` line."""

@@ -24,7 +24,7 @@ from pipelines.common import (
     fingerprint_from_args,
     run_build,
 )
-from usl.cli.common import deprecated_alias, make_parser
+from usl.cli.common import make_parser
 from usl.cli.common import resolution as parse_size
 from usl.records import load_manifest
 from usl.errors import UslError
@@ -86,8 +86,6 @@ def parser() -> argparse.ArgumentParser:
         help="NYU40 names or ids to leave out; 'stuff' = wall, floor, ceiling",
     )
     p.add_argument("--scenes-per-shard", type=int, default=4, help="Hypersim scenes per output shard")
-    deprecated_alias(p, "--frame-stride", "--stride")
-    deprecated_alias(p, "--image-quality", "--jpeg-quality")
     return p
 
 

@@ -130,7 +130,7 @@ def plan_shards(
         if units:
             groups.setdefault(split, []).append(units)
         else:
-            notes.append(f"{scene}: no trajectory or frame left after --cameras, --blacklist, --frame-stride")
+            notes.append(f"{scene}: no trajectory or frame left after --cameras, --blacklist, --stride")
     order = [s for s in OFFICIAL_SPLIT_ORDER if s in groups] + sorted(set(groups) - set(OFFICIAL_SPLIT_ORDER))
     plans = []
     for split in order:

@@ -32,7 +32,7 @@ from pipelines.common import (
     run_build,
     scratch_dir,
 )
-from usl.cli.common import DEVICE_CHOICES, deprecated_alias, make_parser, resolution
+from usl.cli.common import DEVICE_CHOICES, make_parser, resolution
 from usl.errors import UslError
 from usl.records.names import check_name
 
@@ -163,7 +163,6 @@ def parser(spec: dict) -> argparse.ArgumentParser:
         default="auto",
         help="warp the last mask of a track into the current frame with depth and pose (auto: when --stride > 1)",
     )
-    deprecated_alias(p, "--size", "--resolution")
     return p
 
 

@@ -21,8 +21,10 @@ import time
 
 import torch
 
-from train import DEFAULT_OBJECTS, DEFAULT_SIZE, load_bench_config, synthetic_sample
-from usl.model.usl_model import MODES, USLModel
+from train import DEFAULT_OBJECTS, DEFAULT_SIZE  # scripts/bench/train.py, which puts the checkout on sys.path
+
+from tests.data.synthetic_samples import synthetic_config, synthetic_sample  # noqa: E402
+from usl.model.usl_model import MODES, USLModel  # noqa: E402
 
 PAPER_FPS = {"scene_shapes": 8.0, "hypersim": 3.0}  # V100, paper Sec. 4
 
@@ -33,8 +35,7 @@ def _sync(device: torch.device) -> None:
 
 
 def bench(config: str, args: argparse.Namespace, device: torch.device) -> list[dict]:
-    args.config, args.data, args.batch_size = config, None, 0
-    cfg, _ = load_bench_config(args)
+    cfg = synthetic_config(config, args.overrides)
     model = USLModel(cfg.model, cfg.loss).to(device).eval()
     height, width = args.size or DEFAULT_SIZE[config]
     objects = args.objects or DEFAULT_OBJECTS[config]

@@ -1,6 +1,6 @@
 """Benchmark of usl-convert-scannet: .sens decoding + tracking speed per core, and memory vs scan length.
 
-Synthetic ScanNet-like scans (``pipelines.scannet.synthetic``; ten boxes, noisy depth so zlib
+Synthetic ScanNet-like scans (``tests.pipelines.scannet.synthetic_scan``; ten boxes, noisy depth so zlib
 payloads are realistic) are written as .sens files with detectron2-style detections files, then:
 
 * pass 1 (decode pose/depth + read detections + track) in frames per CPU-second (one thread), at stride 1, and
@@ -35,6 +35,8 @@ import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))  # the checkout: its tests' synthetic scans
+
 from data_specs import load_dataset_spec  # noqa: E402
 from pipelines.common import BuildOptions, ShardPlan, run_build  # noqa: E402
 from pipelines.scannet.convert import ConvertOptions, ScanUnit, build_scene, scene_frames, track_scan  # noqa: E402
@@ -43,7 +45,7 @@ from pipelines.scannet.grid import OutputGrid  # noqa: E402
 from pipelines.scannet.quality import tracking_quality  # noqa: E402
 from pipelines.scannet.convert import open_scan  # noqa: E402
 from pipelines.scannet.scannet_labels import ScanNetLabelsSource  # noqa: E402
-from pipelines.scannet.synthetic import (  # noqa: E402
+from tests.pipelines.scannet.synthetic_scan import (  # noqa: E402
     Box,
     SyntheticFrame,
     SyntheticScan,

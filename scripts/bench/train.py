@@ -17,17 +17,21 @@ from __future__ import annotations
 import argparse
 import resource
 import statistics
+import sys
 import time
+from pathlib import Path
 
 import torch
 
-from usl.config import load_config
-from usl.data import CategoryIndex, MultiViewDataset, SampleKey
-from usl.engine.synthetic import synthetic_config, synthetic_sample
-from usl.engine.distributed import DistInfo
-from usl.engine.train import fill_dataset_fields, seed_everything
-from usl.engine.train_step import TrainStep
-from usl.records import RecordsDataset
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))  # the checkout: its tests' synthetic samples
+
+from tests.data.synthetic_samples import synthetic_config, synthetic_sample  # noqa: E402
+from usl.config import load_config  # noqa: E402
+from usl.data import CategoryIndex, MultiViewDataset, SampleKey  # noqa: E402
+from usl.engine.distributed import DistInfo  # noqa: E402
+from usl.engine.train import fill_dataset_fields, seed_everything  # noqa: E402
+from usl.engine.train_step import TrainStep  # noqa: E402
+from usl.records import RecordsDataset  # noqa: E402
 
 DEFAULT_SIZE = {
     "tiny": (128, 128),

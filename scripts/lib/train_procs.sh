@@ -4,7 +4,7 @@
 # batch is global): the same batches as one process, one process per core (gloo), each with the
 # machine's cores over PROCS OpenMP threads unless OMP_NUM_THREADS says otherwise (set, so that
 # torchrun has nothing to announce; a recipe's train.cpu_threads still rules torch's ops). The caller
-# passes the recipe's batch as USL_TRAIN_BATCH (default 4, tiny's): `recipe_batch` reads it.
+# passes the recipe's batch as USL_TRAIN_BATCH (`recipe_batch` reads it; 4 when unset).
 #   recipe_batch RECIPE [key=value ...]   # train.batch_size of the recipe with the overrides
 source "$(dirname "${BASH_SOURCE[0]}")/cores.sh"
 

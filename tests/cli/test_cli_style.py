@@ -1,5 +1,5 @@
 """Every command line: ``--help`` answers without importing torch, shows the docstring examples and
-a help text on every option; the shared options and deprecated spellings behave alike everywhere."""
+a help text on every option; the shared options behave alike everywhere; a ``UslWarning`` prints as one line."""
 
 from __future__ import annotations
 
@@ -8,11 +8,13 @@ import importlib
 import json
 import subprocess
 import sys
+import warnings
 from pathlib import Path
 
 import pytest
 
-from usl.cli.common import common_options, deprecated_alias, make_parser, resolution
+from usl.cli.common import common_options, make_parser, resolution, warning_lines
+from usl.errors import UslWarning
 
 REPO = Path(__file__).parents[2]
 # console script -> module of its main(), as in pyproject.toml's [project.scripts]
@@ -92,9 +94,9 @@ def test_every_option_has_help_and_shared_options_share_their_names():
             ):
                 continue
             assert action.help, f"{command} {action.option_strings or action.dest}: no help text"
-        options = {s for a in parser._actions for s in a.option_strings if a.help != argparse.SUPPRESS}
-        for old in ("--output-dir", "--size", "--image-quality", "--frame-stride"):
-            assert old not in options, f"{command} still shows {old}"
+        options = {s for a in parser._actions for s in a.option_strings}
+        for old in ("--output-dir", "--size", "--image-quality", "--frame-stride"):  # spellings before 0.1
+            assert old not in options, f"{command} still takes {old}"
 
 
 def test_shared_parent_and_defaults_in_help(capsys):
@@ -103,13 +105,20 @@ def test_shared_parent_and_defaults_in_help(capsys):
         "tool: does things.\n\n    tool --out x   # example\n",
         parents=[common_options(out="output folder", out_default="o", workers="processes", seed="seed")],
     )
-    parser.add_argument("--old-out", help="x")
-    deprecated_alias(parser, "--output-dir", "--out")
     text = parser.format_help()
     assert "    tool --out x   # example" in text and "processes (default: 1)" in text and "seed (default: 0)" in text
-    assert "--output-dir" not in text and "--quiet" in text
-    args = parser.parse_args(["--output-dir", "a", "--output-dir", "b"])
-    assert args.out == Path("b") and capsys.readouterr().err.count("--output-dir is deprecated") == 1
+    assert "--quiet" in text and parser.parse_args(["--out", "a", "--out", "b"]).out == Path("b")
+    with pytest.raises(SystemExit):
+        parser.parse_args(["--output-dir", "a"])
+    assert "unrecognized arguments: --output-dir" in capsys.readouterr().err
+
+
+def test_a_usl_warning_is_one_line_naming_the_command_and_others_show_as_python_shows_them(capsys):
+    with pytest.warns(UserWarning) as caught, warning_lines("tool"):
+        warnings.warn("saved key x.y ignored", UslWarning, stacklevel=1)
+        warnings.warn("something else", UserWarning, stacklevel=1)
+    assert capsys.readouterr().err == "tool: warning: saved key x.y ignored\n"
+    assert [str(w.message) for w in caught] == ["something else"]  # passed on to whoever shows warnings
 
 
 @pytest.mark.parametrize("text, size", [("512", (512, 512)), ("640x480", (640, 480)), (" 32X24 ", (32, 24))])
@@ -121,19 +130,3 @@ def test_resolution_syntax(text, size):
 def test_bad_resolution(text):
     with pytest.raises(argparse.ArgumentTypeError, match="WIDTHxHEIGHT|>= 1"):
         resolution(text)
-
-
-def test_old_pipeline_spellings_still_work(capsys):
-    from pipelines.hypersim.cli import parser as hypersim_parser
-    from pipelines.scannet.cli import parser as scannet_parser
-
-    base = ["--out", "o", "--split-csv", "s.csv", "--camera-csv", "c.csv", "scene"]
-    args = hypersim_parser().parse_args(base + ["--frame-stride", "3", "--image-quality", "80"])
-    assert (args.frame_stride, args.image_quality) == (3, 80)
-    assert hypersim_parser().parse_args(base + ["--stride", "3", "--jpeg-quality", "80"]).frame_stride == 3
-    spec = {"tracking": {"min_track_frames": 50}}
-    scannet = ["--out", "o", "--scans-root", "r", "--splits-dir", "d"]
-    assert scannet_parser(spec).parse_args(scannet + ["--size", "320x240"]).size == (320, 240)
-    assert scannet_parser(spec).parse_args(scannet + ["--resolution", "native"]).size is None
-    err = capsys.readouterr().err
-    assert "--frame-stride is deprecated" in err and "use --stride" in err and "--size is deprecated" in err

@@ -1,7 +1,6 @@
 """Recipes, YAML loading, key=value overrides (usl.config) and usl-train's config command line."""
 
 import dataclasses
-import re
 from pathlib import Path
 
 import pytest
@@ -75,37 +74,6 @@ def test_tiny_recipe_uses_the_detectors_tiny_network():
     # sampling the image itself
     assert tiny.model.shape.features == ("p2", "image") and not tiny.model.shape.pass_features
     assert tiny.model.shape.bottleneck_init == "torch" and tiny.model.layout.in_features == ("p2",)
-
-
-def test_a_config_saved_with_the_removed_options_off_loads_as_if_they_had_never_existed():
-    """Every saved config (checkpoint, run folder) carries every field, the removed ones at their off values."""
-    saved = to_dict(load_config("tiny"))
-    saved["data"]["color_jitter"] = {"brightness": 0.0, "contrast": 0.0, "saturation": 0.0, "hue": 0.0}
-    saved["model"]["shape"].update(category_templates=False, global_basis=0, feature=None)
-    saved["model"]["detector"]["backbone"]["resnet"]["weights"] = None
-    saved["loss"]["dist_vertices"] = False
-    saved["loss"]["weights"]["depth_laplacian"] = 0.0
-    assert config_from_dict(saved) == load_config("tiny")
-    assert config_from_dict({"model": {"shape": {"category_templates": False}}}) == Config()  # a partial recipe
-
-
-@pytest.mark.parametrize(
-    "override, instead",
-    [
-        ("data.color_jitter.hue=0.1", "used as stored"),
-        ("model.shape.category_templates=true", "ico-sphere"),
-        ("model.shape.global_basis=25", "one offset per vertex"),
-        ("model.shape.feature=p3", "set model.shape.features"),
-        ("model.detector.backbone.resnet.weights=/w/r50.pth", "set model.init_weights"),
-        ("loss.dist_vertices=true", "surface samples only"),
-        ("loss.weights.depth_laplacian=0.3", "loss.weights.laplacian"),
-    ],
-)
-def test_a_removed_option_turned_on_is_an_error_that_names_it_and_the_way_forward(override, instead):
-    key, _, _ = override.partition("=")
-    with pytest.raises(ConfigError, match=rf"^command line: {re.escape(key)}=.* was removed: .*{instead}") as info:
-        load_config("tiny", [override])
-    assert "docs/experiments/removed-options.md" in str(info.value) and "\n" not in str(info.value)
 
 
 def test_feature_names_are_distinct():
@@ -189,15 +157,14 @@ def test_field_docs_come_from_comments_beside_or_above_the_field():
     assert field_docs(DataConfig)["num_views"] == "M: the input view plus M - 1 other views"  # beside
 
 
-def test_resume_never_swallows_an_override(tmp_path, capsys):
+def test_resume_never_swallows_an_override(tmp_path):
     args = parse_args(["--resume", "data.root=/elsewhere", "optim.max_iter=9"])
     assert args.resume == "" and args.overrides == ["data.root=/elsewhere", "optim.max_iter=9"]
     checkpoint = tmp_path / "a=b.pt"  # an existing path stays a checkpoint even with "=" in its name
     checkpoint.write_bytes(b"")
     assert parse_args(["--resume", str(checkpoint)]).resume == str(checkpoint)
-    args = parse_args(["--output-dir", "r1", "--output-dir", "r2", "--device", "cpu", "train.device=cuda"])
+    args = parse_args(["--out", "r1", "--out", "r2", "--device", "cpu", "train.device=cuda"])
     assert args.out == Path("r2") and args.overrides == ["train.device=cpu", "train.device=cuda"]
-    assert capsys.readouterr().err.count("--output-dir is deprecated") == 1
 
 
 def test_bad_files(tmp_path):
@@ -257,3 +224,11 @@ def test_tiny_long_is_tiny_with_its_schedule_scaled_to_the_longer_run():
         train=dataclasses.replace(long.train, checkpoint_every=tiny.train.checkpoint_every),
     )
     assert rebuilt == tiny
+
+
+def test_help_lists_every_built_in_recipe():
+    from usl.cli.train import RECIPES, parser
+    from usl.config import CONFIG_DIR
+
+    assert RECIPES == sorted(p.stem for p in CONFIG_DIR.glob("*.yaml")) and len(RECIPES) >= 6
+    assert all(name in " ".join(parser().format_help().split()) for name in RECIPES)

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 import usl.model.multiview_loss as batched
-from usl.engine.synthetic import synthetic_config, synthetic_sample
+from tests.data.synthetic_samples import synthetic_config, synthetic_sample
 from usl.geometry.icosphere import ico_sphere
 from usl.losses import sample_mask_points
 from tests.model import multiview_oracle

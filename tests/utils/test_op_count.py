@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from usl.engine.synthetic import synthetic_config, synthetic_sample
+from tests.data.synthetic_samples import synthetic_config, synthetic_sample
 from usl.engine.distributed import DistInfo
 from usl.engine.train import seed_everything
 from usl.engine.train_step import TrainStep

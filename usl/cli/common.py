@@ -4,25 +4,29 @@
   every option's default in its help.
 * ``common_options``: a parent parser with the options tools share, under one name each
   (``--out``, ``--workers``, ``--device``, ``--seed``, ``--quiet``).
-* ``resolution`` (``WxH`` or one int for a square) and ``deprecated_alias`` (an old spelling that
-  still works for one release, after one warning).
+* ``resolution`` (``WxH`` or one int for a square).
+* ``warning_lines``: a ``usl.errors.UslWarning`` raised while it is active prints as one
+  ``COMMAND: warning: ...`` line.
 
-This module imports only the standard library: ``--help`` must answer before torch loads, so
-every CLI parses its arguments first and imports the heavy modules afterwards. It lives in
-``usl`` so that the pipelines (which may import usl) and usl (which never imports pipelines)
-share it.
+This module imports only the standard library and ``usl.errors`` (which imports nothing):
+``--help`` must answer before torch loads, so every CLI parses its arguments first and imports the
+heavy modules afterwards. It lives in ``usl`` so that the pipelines (which may import usl) and usl
+(which never imports pipelines) share it.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import re
 import sys
+import warnings
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Iterator, Sequence
+
+from usl.errors import UslWarning
 
 DEVICE_CHOICES = ("auto", "cpu", "cuda")
-_warned: set[tuple[str, str]] = set()
 
 
 class HelpFormatter(argparse.RawDescriptionHelpFormatter):
@@ -106,38 +110,19 @@ def resolution(text: str) -> tuple[int, int]:
     return width, height
 
 
-class _DeprecatedAlias(argparse.Action):
-    """An old spelling of another option: warns once, then does exactly what that option does."""
+@contextlib.contextmanager
+def warning_lines(command: str, show_usl_warnings: bool = True) -> Iterator[None]:
+    """Show each ``UslWarning`` as one ``COMMAND: warning: MESSAGE`` line on stderr, as it happens
+    (or not at all: ``show_usl_warnings=False``); other warnings as Python shows them."""
+    with warnings.catch_warnings():
+        show = warnings.showwarning
 
-    def __init__(self, option_strings: list[str], dest: str, target: argparse.Action, **_: Any):
-        super().__init__(
-            option_strings,
-            target.dest,
-            nargs=target.nargs,
-            const=target.const,
-            type=target.type,
-            choices=target.choices,
-            metavar=target.metavar,
-            default=argparse.SUPPRESS,
-            help=argparse.SUPPRESS,
-        )
-        self.target = target
+        def show_line(message, category, filename, lineno, file=None, line=None):  # type: ignore[no-untyped-def]
+            if issubclass(category, UslWarning):
+                if show_usl_warnings:
+                    print(f"{command}: warning: {message}", file=sys.stderr)
+            else:
+                show(message, category, filename, lineno, file, line)
 
-    def __call__(self, parser, namespace, values, option_string=None):  # type: ignore[no-untyped-def]
-        new = self.target.option_strings[0]
-        if (parser.prog, str(option_string)) not in _warned:
-            _warned.add((parser.prog, str(option_string)))
-            print(
-                f"{parser.prog}: warning: {option_string} is deprecated and will be removed in the next release; "
-                f"use {new}",
-                file=sys.stderr,
-            )
-        self.target(parser, namespace, values, new)
-
-
-def deprecated_alias(parser: argparse.ArgumentParser, old: str, new: str) -> None:
-    """Accept ``old`` (hidden from ``--help``) as a deprecated spelling of the existing option ``new``."""
-    target = next((a for a in parser._actions if new in a.option_strings), None)
-    if target is None or target.required:  # argparse would count the alias as the option missing
-        raise ValueError(f"{new} is not an optional option of {parser.prog}")
-    parser.add_argument(old, action=_DeprecatedAlias, target=target)
+        warnings.showwarning = show_line
+        yield

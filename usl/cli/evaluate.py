@@ -18,7 +18,7 @@ import sys
 from pathlib import Path
 from typing import Sequence
 
-from usl.cli.common import common_options, make_parser, resolve_device
+from usl.cli.common import common_options, make_parser, resolve_device, warning_lines
 from usl.evaluation.choices import PICTURE_SELECTIONS, ROWS
 from usl.evaluation.baseline_options import DEFAULT_SPHERE_LEVEL, TRUE_DEPTH_SOURCES
 from usl.evaluation.report import TABLE_LAYOUTS  # torch-free, like everything imported here
@@ -128,7 +128,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     from usl.records.output_folder import output_folder
 
     try:
-        with output_folder(Path(args.out), COMMAND, "the results of earlier runs there are kept as they were"):
+        kept = "the results of earlier runs there are kept as they were"
+        with warning_lines(COMMAND), output_folder(Path(args.out), COMMAND, kept):
             paths = evaluate(args)
     except UslError as exc:
         print(f"{COMMAND}: error: {exc}", file=sys.stderr)

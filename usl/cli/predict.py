@@ -29,11 +29,14 @@ import argparse
 import sys
 import warnings
 from pathlib import Path
-from typing import Sequence
+from typing import TYPE_CHECKING, Sequence
 
-from usl.cli.common import common_options, make_parser, resolve_device
+from usl.cli.common import common_options, make_parser, resolve_device, warning_lines
 from usl.inference.field_of_view import FieldOfViewWarning
 from usl.inference.formats import FORMATS
+
+if TYPE_CHECKING:
+    from usl.inference.predict import ImageResult
 
 COMMAND = "usl-predict"
 
@@ -79,42 +82,15 @@ def parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = parser().parse_args(argv)
-    from usl.inference.predict import model_detector, predict_images, read_intrinsics  # torch loads here
     from usl.errors import UslError
-    from usl.records.output_folder import output_folder
 
     try:
-        K = read_intrinsics(args.k_file) if args.k_file else None
-        formats = [f.strip() for f in args.formats.split(",") if f.strip()]
-        missing = [p for p in args.images if not Path(p).is_file()]
-        if missing:  # checked before the model loads; predict_images decodes them all before any work
-            raise UslError(
-                f"image {missing[0]} does not exist" + (f" (and {len(missing) - 1} more)" if len(missing) > 1 else "")
-            )
-        detect, categories = model_detector(args.checkpoint, resolve_device(args.device))
-        kept = "the files of the images done so far are kept"
-        with output_folder(Path(args.out), COMMAND, kept), warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always", FieldOfViewWarning)
-            results = predict_images(
-                detect,
-                args.images,
-                args.out,
-                categories,
-                K,
-                args.fov,
-                formats,
-                args.score_threshold,
-                "gltf" if args.axes == "opengl" else args.axes,
-                args.opencv_k,
-            )
+        with warning_lines(COMMAND):  # an assumed field of view, a saved setting ignored: one line each
+            warnings.simplefilter("always", FieldOfViewWarning)  # a line for each image it applies to
+            results = _predict(args)
     except UslError as exc:
         print(f"{COMMAND}: error: {exc}", file=sys.stderr)
         return 2
-    for warning in caught:  # one line per image whose field of view was assumed; others as Python shows them
-        if issubclass(warning.category, FieldOfViewWarning):
-            print(f"{COMMAND}: warning: {warning.message}", file=sys.stderr)
-        else:
-            warnings.warn_explicit(warning.message, warning.category, warning.filename, warning.lineno)
     for image, result in results.items():
         if args.quiet:
             continue
@@ -127,6 +103,35 @@ def main(argv: Sequence[str] | None = None) -> int:
         else:
             print(f"{image}: {result.num_objects} object(s): {', '.join(str(f) for f in result.files)}")
     return 0
+
+
+def _predict(args: argparse.Namespace) -> dict[str, ImageResult]:
+    """Load the model, predict every image and write its files: what each image gave."""
+    from usl.inference.predict import model_detector, predict_images, read_intrinsics  # torch loads here
+    from usl.errors import UslError
+    from usl.records.output_folder import output_folder
+
+    K = read_intrinsics(args.k_file) if args.k_file else None
+    formats = [f.strip() for f in args.formats.split(",") if f.strip()]
+    missing = [p for p in args.images if not Path(p).is_file()]
+    if missing:  # checked before the model loads; predict_images decodes them all before any work
+        raise UslError(
+            f"image {missing[0]} does not exist" + (f" (and {len(missing) - 1} more)" if len(missing) > 1 else "")
+        )
+    detect, categories = model_detector(args.checkpoint, resolve_device(args.device))
+    with output_folder(Path(args.out), COMMAND, "the files of the images done so far are kept"):
+        return predict_images(
+            detect,
+            args.images,
+            args.out,
+            categories,
+            K,
+            args.fov,
+            formats,
+            args.score_threshold,
+            "gltf" if args.axes == "opengl" else args.axes,
+            args.opencv_k,
+        )
 
 
 if __name__ == "__main__":

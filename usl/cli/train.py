@@ -21,17 +21,20 @@ metric against iterations) and ``checkpoints/`` (``usl.engine.checkpoint``).
 from __future__ import annotations
 
 import argparse
+import os
 import re
 import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Sequence
 
-from usl.cli.common import common_options, deprecated_alias, make_parser
+from usl.cli.common import common_options, make_parser, warning_lines
 from usl.engine.command import COMMAND
 
 if TYPE_CHECKING:
     from usl.config import Config
 
+# The built-in recipes (``usl.config.CONFIG_DIR``, which imports torch: ``--help`` must not)
+RECIPES = sorted(path.stem for path in (Path(__file__).resolve().parents[1] / "configs").glob("*.yaml"))
 _OVERRIDE = re.compile(r"^[A-Za-z_][\w.]*=")
 _SHORTCUTS = {"device": "train.device", "seed": "train.seed", "workers": "data.num_workers"}
 
@@ -48,7 +51,7 @@ def parser() -> argparse.ArgumentParser:
         quiet=None,
     )
     p = make_parser(COMMAND, __doc__, parents=[common])
-    p.add_argument("--config", help="recipe name (tiny, scene_shapes, hypersim, scannet) or a YAML file")
+    p.add_argument("--config", help=f"recipe name ({', '.join(RECIPES)}) or a YAML file")
     p.add_argument(
         "--resume",
         nargs="?",
@@ -65,7 +68,6 @@ def parser() -> argparse.ArgumentParser:
         help="list every config key with its type, value (in --config, if given) and doc line, and exit",
     )
     p.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides, e.g. optim.lr=0.01")
-    deprecated_alias(p, "--output-dir", "--out")
     return p
 
 
@@ -126,37 +128,47 @@ def check_new_run(run_dir: Path) -> None:
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = parse_args(argv)
-    from usl.config import Config, ConfigError, dump_config  # torch loads from here on
-    from usl.config_docs import format_keys
+    from usl.config import ConfigError  # torch loads from here on
     from usl.errors import UslError
     from usl.errors import error_line
 
     from usl.engine.checkpoint import CheckpointError
 
     try:
-        if args.list_keys:
-            print(format_keys(resolve_config(args)[0] if args.config or args.resume is not None else Config()))
-            return 0
-        if args.print_config:
-            print(dump_config(resolve_config(args)[0]), end="")
-            return 0
-        cfg, run_dir, payload = resolve_run(args)
-        from usl.engine.distributed import init_distributed, shutdown_distributed
-        from usl.engine.run_folder import hold_run_folder
-        from usl.engine.train import Trainer
-
-        info = init_distributed(cfg.train.device)
-        try:
-            with hold_run_folder(run_dir, info):
-                if payload is None:
-                    check_new_run(run_dir)  # again: another training may have finished there meanwhile
-                Trainer(cfg, run_dir, info, payload).train()
-        finally:
-            shutdown_distributed()
+        # e.g. a resumed checkpoint's saved keys that this usl no longer has: every process of a
+        # torchrun training reads the checkpoint, the first one says so
+        with warning_lines(COMMAND, show_usl_warnings=os.environ.get("RANK", "0") == "0"):
+            run(args)
     except (ConfigError, CheckpointError, UslError) as exc:
         print(f"{COMMAND}: error: {error_line(exc)}", file=sys.stderr)
         return 2
     return 0
+
+
+def run(args: argparse.Namespace) -> None:
+    """What the parsed arguments ask for: the key listing, the resolved config, or the training."""
+    from usl.config import Config, dump_config
+    from usl.config_docs import format_keys
+
+    if args.list_keys:
+        print(format_keys(resolve_config(args)[0] if args.config or args.resume is not None else Config()))
+        return
+    if args.print_config:
+        print(dump_config(resolve_config(args)[0]), end="")
+        return
+    cfg, run_dir, payload = resolve_run(args)
+    from usl.engine.distributed import init_distributed, shutdown_distributed
+    from usl.engine.run_folder import hold_run_folder
+    from usl.engine.train import Trainer
+
+    info = init_distributed(cfg.train.device)
+    try:
+        with hold_run_folder(run_dir, info):
+            if payload is None:
+                check_new_run(run_dir)  # again: another training may have finished there meanwhile
+            Trainer(cfg, run_dir, info, payload).train()
+    finally:
+        shutdown_distributed()
 
 
 if __name__ == "__main__":  # torchrun -m usl.cli.train ...

@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from usl.config import Config, ConfigError, config_from_dict
+from usl.config import Config, ConfigError, saved_config
 from usl.model.pretrained.files import torch_load_failure
 from usl.records.atomic import write_text_atomic
 from usl.records.tempfiles import temp_path
@@ -90,8 +90,9 @@ def read_checkpoint(path: str | Path) -> dict[str, Any]:
 
 
 def checkpoint_config(payload: dict[str, Any]) -> Config:
+    """The checkpoint's config; keys this version no longer has are ignored with one ``UslWarning``."""
     try:
-        return config_from_dict(payload["config"], where=payload.get("path", "checkpoint"))
+        return saved_config(payload["config"], where=payload.get("path", "checkpoint"))
     except ConfigError as exc:
         raise CheckpointError(f"{payload.get('path', 'checkpoint')}: stored config is invalid: {exc}") from exc
 

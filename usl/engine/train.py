@@ -18,13 +18,12 @@ from usl.model.usl_model import USLModel
 from usl.records import RecordsDataset
 
 from .checkpoint import CheckpointError, rng_state, set_rng_state, write_run_checkpoint
+from .command import COMMAND
 from .distributed import DistInfo, all_gather_objects, barrier, replica_digests
 from .feedback import TrainingFeedback
 from .run_log import RunLog
 from .skip_guard import SkipGuard
 from .train_step import TrainStep
-
-COMMAND = "usl-train"
 
 
 def fill_dataset_fields(cfg: Config, records: RecordsDataset) -> None:

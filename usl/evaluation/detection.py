@@ -7,7 +7,7 @@ like ground-truth-box predictions; unmatched ones only count in AP; missed insta
 
 AP (bbox and segm) comes from pycocotools' COCOeval on COCO dicts built here: ground truth from the
 input views' instances, detections with the predicted boxes (bbox) or the rendered meshes (segm; see
-``eval_render.detection_masks``: visible parts in the scene of the confident detections).
+``usl.evaluation.render.detection_masks``: visible parts in the scene of the confident detections).
 """
 
 from __future__ import annotations

@@ -1,9 +1,9 @@
 """The evaluation behind ``usl-eval`` (command line: ``usl.cli.evaluate``): every predictor on
 the input views of a split, scene by scene, into per-object rows, summaries and pictures.
 
-The metric definitions are in ``eval_render`` (pairs), ``eval_scene`` (aggregation),
-``eval_views`` (which views), ``eval_detection`` (matching, AP) and ``baselines``; the pictures
-and their index in ``eval_gallery``.
+The metric definitions are in ``usl.evaluation.render`` (pairs), ``scene`` (one scene's rows),
+``summary`` (aggregation), ``views`` (which views), ``detection`` (matching, AP) and ``baselines``;
+the pictures in ``pictures`` and their choice and index in ``gallery``.
 """
 
 from __future__ import annotations
@@ -63,7 +63,7 @@ def run_evaluation(
     picture_score: float = 0.5,
 ) -> EvalRun:
     """Evaluate ``predictors`` on a split; ``num_pictures`` input views chosen ``pictures_by`` (see
-    ``eval_gallery``) are drawn into ``pictures_dir`` with an ``index.md``."""
+    ``usl.evaluation.gallery``) are drawn into ``pictures_dir`` with an ``index.md``."""
     names = [p.name for p in predictors]
     if len(set(names)) != len(names):
         raise UslError(f"predictor names must be unique, got {names}")

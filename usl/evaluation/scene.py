@@ -9,7 +9,7 @@ the objects table when the dataset has one.
 Aggregation (documented in docs/design.md §6 terms): an object's "input" value is its score in the input
 view; its "views" value is the mean over the other views selected for it (objects absent from a
 view are not scored there; objects seen in no other view have no "views" value). Dataset values
-are means over objects (``eval_summary``), per predictor.
+are means over objects (``usl.evaluation.summary``), per predictor.
 """
 
 from __future__ import annotations

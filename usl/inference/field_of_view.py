@@ -13,13 +13,15 @@ import math
 import warnings
 from pathlib import Path
 
+from usl.errors import UslWarning
+
 DEFAULT_FOV_DEG = 60.0  # horizontal; a phone's main camera is 60-70 degrees wide in landscape
 FULL_FRAME_DIAGONAL_MM = math.hypot(36.0, 24.0)
 EXIF_IFD = 0x8769
 FOCAL_LENGTH_35MM = 0xA405  # FocalLengthIn35mmFilm
 
 
-class FieldOfViewWarning(UserWarning):
+class FieldOfViewWarning(UslWarning):
     """A field of view was assumed, not read: depths scale with how wrong it is."""
 
 

@@ -8,7 +8,7 @@ from types import SimpleNamespace
 
 import pytest
 
-from pipelines.scannet.synthetic import (
+from tests.pipelines.scannet.synthetic_scan import (
     SyntheticScan,
     write_detections,
     write_exported,

@@ -17,7 +17,7 @@ from pipelines.common.spill import set_spill_dir
 from pipelines.scannet.cli import main
 from pipelines.scannet.convert import SKIP_DEPTH, SKIP_POSE, ConvertOptions, ScanUnit, build_scene
 from pipelines.scannet.scannet_labels import ScanNetLabelsSource
-from pipelines.scannet.synthetic import SyntheticScan, write_label_map, write_labels, write_sens
+from tests.pipelines.scannet.synthetic_scan import SyntheticScan, write_label_map, write_labels, write_sens
 from usl.records.schema import file_schema_version
 from usl.records import RecordsDataset, decode_depth, decode_image, decode_mask, load_manifest
 from usl.records.validate import validate_dataset
@@ -240,7 +240,7 @@ def test_a_bad_scan_among_good_ones_is_a_recorded_skip_and_the_build_completes(s
         str(synthetic.labels),
         "--stride",
         "2",
-        "--size",
+        "--resolution",
         "48x36",
     ]
     assert main(args + ["--no-skip-bad-scenes"]) == 2

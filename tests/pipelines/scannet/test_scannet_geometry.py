@@ -13,7 +13,7 @@ from pipelines.scannet.quality import tracking_quality
 from pipelines.scannet.convert import open_scan
 from pipelines.scannet.scan import Calibration, half_pixel_intrinsics
 from pipelines.scannet.scannet_labels import ScanNetLabelsSource
-from pipelines.scannet.synthetic import SyntheticScan
+from tests.pipelines.scannet.synthetic_scan import SyntheticScan
 from pipelines.scannet.tracker import TrackerConfig
 from pipelines.scannet.warp import DepthWarp
 

@@ -12,7 +12,7 @@ import pytest
 from pipelines.scannet.exported import ExportedScan
 from pipelines.scannet.scan import encoded_image_size, rigid_pose
 from pipelines.scannet.sens import SensScan
-from pipelines.scannet.synthetic import SyntheticScan, write_exported, write_sens
+from tests.pipelines.scannet.synthetic_scan import SyntheticScan, write_exported, write_sens
 from usl.errors import UslError
 
 
