@@ -24,6 +24,7 @@ from usl.geometry import cube_to_frustum
 from usl.losses import combine_losses
 from usl.model.backbone import IMAGENET_MEAN, IMAGENET_STD, ShapeSpec
 from usl.model.detector import ImageList, MaskRCNN, MultiScaleRoIAlign
+from usl.model.detector.roi_heads import CANONICAL_LEVEL, POOLER_SAMPLING_RATIO
 from usl.model.heads import LayoutHead, LayoutPrediction, ShapeHead, ShapePrediction
 from usl.model.mesh3d_loss import mesh_supervision_loss
 from usl.model.multiview_loss import REGULARIZERS, multiview_silhouette_loss, shape_regularizers
@@ -71,14 +72,13 @@ class USLModel(nn.Module):
         for name in cfg.layout.in_features:
             if name not in shapes:
                 raise ValueError(f"model.layout.in_features: backbone has no feature {name!r}; it has {sorted(shapes)}")
-        roi_cfg = cfg.detector.roi_heads
         self.layout_pooler = MultiScaleRoIAlign(
             cfg.layout.in_features,
             [shapes[n].stride for n in cfg.layout.in_features],
             cfg.layout.pooler_resolution,
-            0,
-            roi_cfg.canonical_box_size,
-            roi_cfg.canonical_level,
+            POOLER_SAMPLING_RATIO,
+            cfg.detector.roi_heads.canonical_box_size,
+            CANONICAL_LEVEL,
         )
         in_channels = shapes[cfg.layout.in_features[0]].channels
         self.layout_head = LayoutHead(in_channels, len(cfg.categories), cfg.layout, cfg.layout_range)
