@@ -41,7 +41,7 @@ CONFIG_DIR = Path(__file__).resolve().parent / "configs"
 
 @dataclass
 class Config:
-    name: str = "usl"  # the run's name; default run folder: runs/<name>
+    name: str = "usl"  # the run's name (a recipe's: its file name); default run folder: runs/<name>
     data: DataConfig = field(default_factory=DataConfig)
     model: ModelConfig = field(default_factory=ModelConfig)
     loss: LossConfig = field(default_factory=LossConfig)
@@ -70,7 +70,7 @@ def load_config(name_or_path: str | Path, overrides: Sequence[str] = ()) -> Conf
     A mistake in the recipe is reported against its file; one in the overrides against the
     command line and the override that makes it."""
     path = resolve_config_path(name_or_path)
-    recipe = read_yaml_config(path)
+    recipe = {"name": path.stem, **read_yaml_config(path)}  # a run is named after its recipe unless it says
     config = config_from_dict(recipe, where=str(path))
     return apply_overrides(recipe, overrides) if overrides else config
 

@@ -147,7 +147,7 @@ def read_yaml_config(path: Path, _seen: tuple[Path, ...] = ()) -> dict[str, Any]
 
 def deep_merge(base: Mapping[str, Any], update: Mapping[str, Any]) -> dict[str, Any]:
     """``update`` over ``base``, mapping by mapping; an empty mapping in ``update`` replaces the one in
-    ``base`` rather than merging, so ``optim.lr_mult={}`` clears a recipe's factors."""
+    ``base`` rather than merging, so ``loss.dist_schedule={}`` clears a recipe's schedule."""
     merged = copy.deepcopy(dict(base))
     for key, value in update.items():
         if isinstance(value, Mapping) and value and isinstance(merged.get(key), Mapping):

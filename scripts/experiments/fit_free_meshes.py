@@ -66,9 +66,7 @@ def fit_sample(sample, cfg, steps: int, lr: float, ico_level: int) -> FittedMesh
     K = sample.frame.K.float().expand(n, 3, 3)
     optimizer = torch.optim.Adam([verts, layout], lr=lr)
     weights = replace(cfg.loss.weights, mu_2d=0.0)  # no detector here
-    need = {
-        name: bool(getattr(weights, name) * weights.mu_reg) for name in REGULARIZERS if name != "offset_l2"
-    }  # no offsets here
+    need = {name: bool(getattr(weights, name)) for name in REGULARIZERS if name != "offset_l2"}  # no offsets here
 
     def placed() -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         unit = torch.sigmoid(layout)

@@ -1,12 +1,13 @@
-"""Parameter groups of optim.lr_mult, and the schedule over them."""
+"""Parameter groups of the model's learning-rate factors, and the schedule over them."""
 
 import pytest
 import torch
 from torch import nn
 
-from usl.config import ConfigError, load_config
+from usl.config import load_config
 from usl.engine.config import OptimConfig
 from usl.engine.optim import build_optimizer, build_scheduler, lay_out_state_like_params
+from usl.model.usl_model import USLModel
 
 
 def _net() -> nn.Module:
@@ -26,10 +27,8 @@ def _rates(optimizer: torch.optim.Optimizer, net: nn.Module) -> dict[str, float]
 
 def test_longest_prefix_sets_each_parameters_rate_and_the_schedule_scales_all():
     net = _net()
-    cfg = OptimConfig(
-        name="adam", lr=1e-3, schedule="step", steps=(2,), gamma=0.1, lr_mult={"head": 10.0, "head.out": 2.0}
-    )
-    optimizer = build_optimizer(net.named_parameters(), cfg)
+    cfg = OptimConfig(name="adam", lr=1e-3, steps=(2,), gamma=0.1)
+    optimizer = build_optimizer(net.named_parameters(), cfg, {"head": 10.0, "head.out": 2.0})
     expected = {"backbone": 1e-3, "head.stage": 1e-2, "head.out": 2e-3}
     rates = _rates(optimizer, net)
     assert set(rates) == {f"{m}.{k}" for m in expected for k in ("weight", "bias")}  # frozen ones left out
@@ -41,14 +40,27 @@ def test_longest_prefix_sets_each_parameters_rate_and_the_schedule_scales_all():
     assert all(r == pytest.approx(0.1 * expected[n.rsplit(".", 1)[0]]) for n, r in _rates(optimizer, net).items())
 
 
-def test_lr_mult_errors_name_the_bad_entry():
+def test_a_factor_naming_no_parameter_is_an_error_naming_it():
     with pytest.raises(ValueError, match="headx"):
-        build_optimizer(_net().named_parameters(), OptimConfig(lr_mult={"headx": 2.0}))  # a prefix, not a word part
-    with pytest.raises(ConfigError, match="lr_mult"):
-        OptimConfig(lr_mult={"head": 0.0})
-    cfg = load_config("tiny", ["optim.lr_mult={shape_head: 10}"])  # merged into the recipe's factors
-    assert cfg.optim.lr_mult == {"shape_head.global_mlp": 0.1, "shape_head": 10.0}
-    assert load_config("tiny", ["optim.lr_mult={}"]).optim.lr_mult == {}  # an empty mapping clears them
+        build_optimizer(_net().named_parameters(), OptimConfig(), {"headx": 2.0})  # a prefix, not a word part
+
+
+MODEL = [
+    "model.categories=[a, b]",
+    *(f"model.layout_range.{k}={v}" for k, v in zip(("z0", "z1", "rho0", "rho1"), (1, 9, 0.1, 2))),
+]
+
+
+def test_the_global_shape_stage_learns_at_a_tenth_of_the_rate():
+    """The model names its own factors; the global stage's 0.1 is what kept its tanh from saturating."""
+    cfg = load_config("tiny", MODEL)
+    model = USLModel(cfg.model, cfg.loss, load_init_weights=False)
+    rates = _rates(build_optimizer(model.named_parameters(), cfg.optim, model.lr_factors()), model)
+    slow = {name for name, rate in rates.items() if rate == pytest.approx(0.1 * cfg.optim.lr)}
+    assert slow and slow == {name for name in rates if name.startswith("shape_head.global_mlp.")}
+    assert all(rates[name] == cfg.optim.lr for name in rates.keys() - slow)
+    cfg = load_config("tiny", [*MODEL, "model.shape.global_stage=0"])
+    assert USLModel(cfg.model, cfg.loss, load_init_weights=False).lr_factors() == {}
 
 
 @pytest.mark.parametrize("name", ["adam", "sgd"])

@@ -29,7 +29,6 @@ FAST = [
     "data.max_size=0",
     "data.num_views=2",
     "loss.mesh_points=100",
-    "loss.mask_points=100",
     "loss.render.resolution=16",
     "model.shape.num_stages=1",
 ]
@@ -146,7 +145,7 @@ def test_two_process_ddp_step_equals_one_process_on_the_combined_batch(records, 
         "optim.momentum=0",
         "optim.weight_decay=0",
         "optim.max_iter=1",
-        "optim.schedule=constant",
+        "optim.steps=[]",
         "loss.weights.mu_2d=0",
         "model.detector.backbone.resnet.norm=FrozenBN",
         "data.num_views=3",
@@ -228,8 +227,8 @@ def test_clipping_caps_the_step_and_the_log_shows_when(records, tmp_path):
         "optim.lr=1e-3",
         "optim.momentum=0",
         "optim.weight_decay=0",
-        "optim.schedule=constant",
-        "optim.lr_mult={}",
+        "optim.steps=[]",
+        "model.shape.global_stage=0",
         "train.batch_size=2",
     ]
     moved, norms = {}, {}

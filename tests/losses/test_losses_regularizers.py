@@ -15,6 +15,7 @@ from usl.losses.regularizers import (
     normal_consistency,
     offset_l2_loss,
 )
+from usl.config import load_config
 from usl.losses.total import LossWeights, combine_losses
 
 DT = torch.float64
@@ -83,15 +84,23 @@ def test_normal_consistency_matches_trimesh_face_adjacency_angles_and_gradcheck(
     assert torch.autograd.gradcheck(lambda y: normal_consistency(y, f, faces_on_each_edge(f)), (x,))
 
 
-def test_recipes_and_combination():
-    assert LossWeights.recipe("scene_shapes") == LossWeights(mu_2d=0.0, edge=0.1, offset_l2=0.0)
-    assert LossWeights.recipe("hypersim") == LossWeights()
-    assert LossWeights.recipe("scannet").laplacian == 0.1
-    with pytest.raises(ValueError, match="unknown dataset"):
-        LossWeights.recipe("shapenet")
+def test_the_recipes_carry_the_papers_weights():
+    """The paper's Appendix B-D: Scene-Shapes L_3D + 0.1 L_edge (no L_2D); Hypersim L_2D + L_3D + 0.05 ½‖dV‖²;
+    ScanNet that + 0.1 L_laplac."""
+    papers = {
+        "scene_shapes": dict(mu_2d=0.0, mu_3d=1.0, edge=0.1, offset_l2=0.0, laplacian=0.0),
+        "hypersim": dict(mu_2d=1.0, mu_3d=1.0, edge=0.0, offset_l2=0.05, laplacian=0.0),
+        "scannet": dict(mu_2d=1.0, mu_3d=1.0, edge=0.0, offset_l2=0.05, laplacian=0.1),
+    }
+    for recipe, weights in papers.items():
+        assert load_config(recipe).loss.weights == LossWeights(**weights, normal=0.0, dist=1.0, soft_iou=0.0), recipe
+
+
+def test_combination():
     one = torch.tensor(1.0)
+    scannet = load_config("scannet").loss.weights
     total, parts = combine_losses(
-        LossWeights.recipe("scannet"),
+        scannet,
         l3d=2 * one,
         detection={"cls": one, "box": one},
         offset_l2=10 * one,
@@ -99,15 +108,15 @@ def test_recipes_and_combination():
     )
     assert total.item() == pytest.approx(1 + 1 + 2 + 0.05 * 10 + 0.1 * 3)
     assert set(parts) == {"det/cls", "det/box", "l3d", "offset_l2", "laplacian"}
-    total, parts = combine_losses(LossWeights.recipe("scene_shapes"), l3d=one, edge=4 * one)
+    total, parts = combine_losses(load_config("scene_shapes").loss.weights, l3d=one, edge=4 * one)
     assert total.item() == pytest.approx(1 + 0.4) and set(parts) == {"l3d", "edge"}
-    halved = LossWeights(mu_reg=0.5, mu_3d=2.0)
-    total, _ = combine_losses(halved, l3d=one, detection={}, offset_l2=one)
-    assert total.item() == pytest.approx(2 + 0.5 * 0.05)
+    doubled = LossWeights(mu_3d=2.0)
+    total, _ = combine_losses(doubled, l3d=one, detection={}, offset_l2=one)
+    assert total.item() == pytest.approx(2 + 0.05)
     with pytest.raises(ValueError, match="laplacian"):
-        combine_losses(LossWeights.recipe("scannet"), l3d=one, detection={}, offset_l2=one)
+        combine_losses(scannet, l3d=one, detection={}, offset_l2=one)
     with pytest.raises(ValueError, match="detection"):
-        combine_losses(LossWeights.recipe("hypersim"), l3d=one, offset_l2=one)
+        combine_losses(LossWeights(), l3d=one, offset_l2=one)
     total, parts = combine_losses(LossWeights(mu_2d=0.0, offset_l2=0.0, normal=0.2), l3d=one, normal=3 * one)
     assert total.item() == pytest.approx(1 + 0.6) and set(parts) == {"l3d", "normal"}
     with pytest.raises(ValueError, match="normal"):

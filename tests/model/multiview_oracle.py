@@ -136,7 +136,7 @@ def _gather_pairs(
             continue
         to_view = relative_transform(input_pose, view.cam_to_world).float()
         masks = view.masks[present]
-        true_points, true_lengths = sample_mask_points(masks, cfg.mask_points, generator=generator)
+        true_points, true_lengths = sample_mask_points(masks, cfg.mesh_points, generator=generator)
         pairs.verts.append(transform_points(verts[present], to_view))
         pairs.points.append(transform_points(surface[present], to_view))
         pairs.true_points.append(true_points)

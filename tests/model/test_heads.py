@@ -9,7 +9,6 @@ import torch.nn.functional as F
 from tests.model.detection_oracles import roi_align_loop, subsample_labels_read_per_image
 from usl.utils.op_count import count_ops
 from usl.model.detector.box_head import FastRCNNOutputLayers
-from usl.model.detector.config import BoxHeadConfig
 from usl.model.ops import box_iou, padded_match_quality, stack_padded
 from usl.model.detector import (
     ImageList,
@@ -197,7 +196,7 @@ def test_rpn_losses_weighted_over_all_anchors_match_the_sampled_anchors_alone(mo
     sampled anchors out first (a reference implementation), for values and gradients."""
     from usl.model.backbone import ShapeSpec
     from usl.model.detector.config import DetectorConfig
-    from usl.model.detector.rpn import RPN
+    from usl.model.detector.rpn import BBOX_REG_WEIGHTS, RPN
     from usl.model.ops import Box2BoxTransform
 
     cfg = DetectorConfig.tiny().rpn
@@ -213,11 +212,11 @@ def test_rpn_losses_weighted_over_all_anchors_match_the_sampled_anchors_alone(mo
     new = rpn.losses(anchors, logits, deltas, [None, None])
     new_grads = torch.autograd.grad(sum(new.values()), [logits, deltas])
     positive, valid = labels == 1, labels != -1
-    target = Box2BoxTransform(cfg.bbox_reg_weights).get_deltas(anchors.expand_as(matched)[positive], matched[positive])
-    weight = cfg.loss_weight / (cfg.batch_size_per_image * 2)
+    target = Box2BoxTransform(BBOX_REG_WEIGHTS).get_deltas(anchors.expand_as(matched)[positive], matched[positive])
+    weight = 1.0 / (cfg.batch_size_per_image * 2)
     old = {
         "loss_rpn_cls": F.binary_cross_entropy_with_logits(logits[valid], labels[valid].float(), reduction="sum"),
-        "loss_rpn_loc": F.smooth_l1_loss(deltas[positive], target, beta=cfg.smooth_l1_beta, reduction="sum"),
+        "loss_rpn_loc": F.smooth_l1_loss(deltas[positive], target, beta=0.0, reduction="sum"),
     }
     old = {k: v * weight for k, v in old.items()}
     old_grads = torch.autograd.grad(sum(old.values()), [logits, deltas])
@@ -231,7 +230,7 @@ def test_rpn_nms_of_all_images_at_once_matches_one_image_at_a_time():
     """The former per-image loop (clip, drop empty, NMS per level, top-k) is the oracle."""
     from usl.model.backbone import ShapeSpec
     from usl.model.detector.config import DetectorConfig
-    from usl.model.detector.rpn import RPN
+    from usl.model.detector.rpn import MIN_BOX_SIZE, RPN
     from usl.model.ops import batched_nms, clip_boxes, nonempty_boxes
 
     cfg = DetectorConfig.tiny().rpn
@@ -249,7 +248,7 @@ def test_rpn_nms_of_all_images_at_once_matches_one_image_at_a_time():
     new = rpn._nms_per_image(boxes, scores, levels, sizes, post_topk=25)
     for image, (image_boxes, image_scores, size) in enumerate(zip(boxes, scores, sizes)):
         image_boxes = clip_boxes(image_boxes, size)
-        keep = nonempty_boxes(image_boxes, cfg.min_box_size) & torch.isfinite(image_scores)
+        keep = nonempty_boxes(image_boxes, MIN_BOX_SIZE) & torch.isfinite(image_scores)
         keep &= torch.isfinite(image_boxes).all(dim=1)
         image_boxes, image_scores, image_levels = image_boxes[keep], image_scores[keep], levels[keep]
         kept = batched_nms(image_boxes, image_scores, image_levels, cfg.nms_thresh)[:25]
@@ -263,7 +262,7 @@ def test_box_losses_with_host_foreground_counts_equal_the_device_search_and_read
     given them equal those that find the foreground rows with ``nonzero`` (values and gradients,
     bit for bit), without a host sync."""
     g = torch.Generator().manual_seed(0)
-    head = FastRCNNOutputLayers(16, 3, BoxHeadConfig())
+    head = FastRCNNOutputLayers(16, 3)
     proposals, counts = [], []
     for n, fg in ((7, 3), (5, 0), (6, 6)):
         boxes = torch.rand(n, 2, generator=g) * 50
@@ -296,7 +295,7 @@ def test_box_inference_of_all_images_at_once_matches_one_image_at_a_time_with_re
     from usl.utils.compiled import torch_paths_only
 
     g = torch.Generator().manual_seed(3)
-    head = FastRCNNOutputLayers(16, 3, BoxHeadConfig())
+    head = FastRCNNOutputLayers(16, 3)
     sizes, counts = [(80, 96), (64, 64), (48, 80), (80, 80)], [30, 0, 25, 40]
     proposals = []
     for size, n in zip(sizes, counts):

@@ -10,7 +10,7 @@ import torch
 from usl.model.config import LayoutRange
 from usl.config import load_config
 from usl.data import CategoryIndex, MultiViewDataset, SampleKey
-from usl.model.mesh3d_loss import mesh_supervision_loss
+from usl.model.mesh3d_loss import MESH_RCNN_SHAPENET, mesh_supervision_loss
 from usl.model.usl_model import USLModel
 from usl.records import RecordsDataset
 from usl.errors import UslError
@@ -26,7 +26,6 @@ def setup(synthetic_root):
             f"data.root={synthetic_root}",
             "data.max_size=0",
             "loss.supervision=3d",
-            "loss.mesh3d.num_samples=500",
             "data.flip_prob=0",
         ],
     )
@@ -55,7 +54,7 @@ def test_true_mesh_scores_zero_and_descent_moves_shape_and_layout_to_it(setup):
     faces = truth[0][1]
     verts = torch.cat([v for v, _ in truth])
     counts = [len(v) for v, _ in truth]
-    mesh3d = replace(cfg.loss.mesh3d, normals=0.1)
+    mesh3d = replace(MESH_RCNN_SHAPENET, normals=0.1, num_samples=500)
     # a wrong depth (a scale about the camera) and a squashed shape
     centre = verts.mean(dim=1, keepdim=True)
     start = 1.25 * (centre + (verts - centre) * torch.tensor([1.0, 0.5, 1.0]))

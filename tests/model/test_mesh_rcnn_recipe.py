@@ -65,7 +65,6 @@ def test_passed_features_widen_the_next_stage_and_carry_gradient(sampler):
             features=("res2", "res3"),
             pass_features=passing,
             sampler=sampler,
-            vertalign_resolution=7,
             graph_conv_init="kaiming",
         )
         head = ShapeHead(shapes, cfg)

@@ -33,7 +33,7 @@ def test_batched_pairs_match_the_per_view_oracle(monkeypatch, overrides):
     deterministic = functools.partial(sample_mask_points, jitter=False)
     monkeypatch.setattr(batched, "sample_mask_points", deterministic)
     monkeypatch.setattr(multiview_oracle, "sample_mask_points", deterministic)
-    cfg = synthetic_config("tiny", ["loss.mask_points=6000", "loss.render.resolution=24", *overrides]).loss
+    cfg = synthetic_config("tiny", ["loss.mesh_points=6000", "loss.render.resolution=24", *overrides]).loss
     samples = batch_with_absent_pairs()
     sphere, faces = ico_sphere(1)
     centres = torch.tensor([[-0.4, 0.1, 3.0], [0.2, -0.2, 3.5], [0.5, 0.3, 2.8], [0.0, 0.0, 3.2], [-0.3, 0.4, 4.0]])

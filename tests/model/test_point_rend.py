@@ -14,8 +14,10 @@ from tests.model.detection_oracles import _bilinear
 from tests.model.detection_scenes import make_dataset
 from tests.model.detectron2_fixtures import CHECKPOINT_KEYS, MASK_RCNN, POINTREND
 from usl.model.detector import DetectorConfig, MaskRCNN
+from usl.model.detector.roi_heads import PointRendROIHeads
 from usl.model.detector.point_rend import (
     PointHead,
+    PointRendSettings,
     bilinear_mask_values,
     most_uncertain_cells,
     regular_grid,
@@ -25,11 +27,15 @@ from usl.model.pretrained import WeightsError, init_detector
 from usl.model.segmenter import SegmenterConfig, detector_for_weights
 
 
-def tiny_point_rend(**changes) -> DetectorConfig:
+def small_settings(**changes) -> PointRendSettings:
+    return dataclasses.replace(PointRendSettings(), **{"conv_dim": 32, "fc_dim": 32, "point_fc_dim": 16, **changes})
+
+
+def tiny_point_rend(monkeypatch, **changes) -> DetectorConfig:
+    """The tiny detector with PointRend's mask branch, its heads narrowed (the layout stays detectron2's)."""
+    monkeypatch.setattr(PointRendROIHeads, "settings", small_settings(**changes))
     cfg = DetectorConfig.tiny()
     cfg.roi_heads.name = "point_rend"
-    sizes = {"conv_dim": 32, "fc_dim": 32, "point_fc_dim": 16, **changes}
-    cfg.roi_heads.point_rend = dataclasses.replace(cfg.roi_heads.point_rend, **sizes)
     return cfg
 
 
@@ -84,8 +90,7 @@ def test_most_uncertain_cells_pick_logits_nearest_zero():
 
 def test_point_head_for_one_class_is_that_row_of_all_classes():
     torch.manual_seed(0)
-    cfg = tiny_point_rend().roi_heads.point_rend
-    head = PointHead(8, 5, cfg)
+    head = PointHead(8, 5, small_settings())
     torch.nn.init.normal_(head.predictor.weight)
     fine, coarse = torch.randn(4, 8, 6), torch.randn(4, 5, 6)
     classes = torch.tensor([3, 0, 4, 3])
@@ -94,16 +99,16 @@ def test_point_head_for_one_class_is_that_row_of_all_classes():
     torch.testing.assert_close(head(fine, coarse, classes), every[torch.arange(4), classes])
 
 
-def test_subdivision_starts_where_every_cell_would_be_refined_and_ends_at_224():
-    detector = MaskRCNN(3, tiny_point_rend())
+def test_subdivision_starts_where_every_cell_would_be_refined_and_ends_at_224(monkeypatch):
+    detector = MaskRCNN(3, tiny_point_rend(monkeypatch))
     head = detector.roi_heads.mask_head
     assert (head.start_resolution, head.steps, head.output_resolution) == (28, 3, 224)
 
 
-def test_subdivision_refines_only_the_most_uncertain_cells():
+def test_subdivision_refines_only_the_most_uncertain_cells(monkeypatch):
     """Step by step: upsample, then exactly the chosen cells take the point head's prediction."""
     torch.manual_seed(0)
-    detector = MaskRCNN(3, tiny_point_rend(subdivision_steps=3, subdivision_num_points=50)).eval()
+    detector = MaskRCNN(3, tiny_point_rend(monkeypatch, subdivision_steps=3, subdivision_num_points=50)).eval()
     head = detector.roi_heads.mask_head
     assert (head.start_resolution, head.steps) == (7, 3)
     torch.nn.init.normal_(head.point_head.predictor.weight, std=1.0)
@@ -133,9 +138,9 @@ def test_subdivision_refines_only_the_most_uncertain_cells():
     assert nothing.shape == (0, 56, 56)
 
 
-def test_point_rend_trains_both_heads_and_predicts_full_size_masks():
+def test_point_rend_trains_both_heads_and_predicts_full_size_masks(monkeypatch):
     images, targets = make_dataset(2, seed=3)
-    detector = MaskRCNN(2, tiny_point_rend()).train()
+    detector = MaskRCNN(2, tiny_point_rend(monkeypatch)).train()
     losses = detector(images, targets=targets)
     assert {"loss_mask", "loss_mask_point"} <= losses.keys()
     sum(losses.values()).backward()
@@ -226,6 +231,6 @@ def test_point_rend_weights_do_not_load_into_a_mask_rcnn(tmp_path):
         init_detector(MaskRCNN(80, cfg), tmp_path / "pointrend.pkl")
 
 
-def test_a_coarse_head_narrower_than_its_features_is_refused():
+def test_a_coarse_head_narrower_than_its_features_is_refused(monkeypatch):
     with pytest.raises(ValueError, match="conv_dim"):
-        MaskRCNN(3, tiny_point_rend(conv_dim=16))
+        MaskRCNN(3, tiny_point_rend(monkeypatch, conv_dim=16))

@@ -170,7 +170,7 @@ def test_vertalign_agrees_with_roimap_inside_the_roi():
 @pytest.mark.parametrize("sampler", ["roimap", "vertalign"])
 def test_shape_head_shapes_init_and_gradients(sampler):
     torch.manual_seed(0)
-    cfg = ShapeHeadConfig(ico_level=1, num_stages=2, hidden_dim=16, sampler=sampler, vertalign_resolution=7)
+    cfg = ShapeHeadConfig(ico_level=1, num_stages=2, hidden_dim=16, sampler=sampler)
     head = ShapeHead({"p2": ShapeSpec(8, 4)}, cfg)
     fmap = torch.randn(2, 8, 16, 16, requires_grad=True)
     boxes = [torch.tensor([[4.0, 4.0, 40.0, 30.0]]), torch.tensor([[10.0, 10.0, 60.0, 60.0], [0.0, 0.0, 20.0, 20.0]])]

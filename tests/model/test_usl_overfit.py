@@ -31,7 +31,6 @@ OVERRIDES = [
     "data.max_size=0",
     "model.shape.num_stages=1",
     "loss.mesh_points=200",
-    "loss.mask_points=200",
     "loss.render.resolution=32",
     "train.checkpoint_every=1000",
     "train.log_every=10",

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from bisect import bisect_right
-from typing import Iterable
+from typing import Iterable, Mapping
 
 import torch
 from torch import nn
@@ -11,23 +11,32 @@ from torch import nn
 from usl.engine.config import OptimConfig
 
 
-def build_optimizer(named_params: Iterable[tuple[str, nn.Parameter]], cfg: OptimConfig) -> torch.optim.Optimizer:
-    """One parameter group per learning-rate factor (``cfg.lr_mult``); the schedule scales them all.
+WARMUP_FACTOR = 0.001  # the rate at iteration 0 of the warm-up, as a fraction of lr (detectron2's)
+
+
+def build_optimizer(
+    named_params: Iterable[tuple[str, nn.Parameter]], cfg: OptimConfig, lr_factors: Mapping[str, float] | None = None
+) -> torch.optim.Optimizer:
+    """One parameter group per learning-rate factor; the schedule scales them all.
+
+    ``lr_factors``: factors on ``cfg.lr`` by parameter-name prefix (the longest matching prefix wins),
+    from the model (``USLModel.lr_factors``); every other parameter learns at ``cfg.lr``.
 
     Fused: one kernel per step instead of a few ops (and, for Adam, a step-count read) per parameter,
     and it honours ``found_inf``, which ``TrainStep`` sets to skip a non-finite step without a host sync.
     """
+    lr_factors = lr_factors or {}
     groups: dict[float, list[nn.Parameter]] = {}
     matched = set()
     for name, param in named_params:
         if not param.requires_grad:
             continue
-        prefix = max((k for k in cfg.lr_mult if name == k or name.startswith(k + ".")), key=len, default=None)
+        prefix = max((k for k in lr_factors if name == k or name.startswith(k + ".")), key=len, default=None)
         matched.add(prefix)
-        groups.setdefault(cfg.lr_mult[prefix] if prefix is not None else 1.0, []).append(param)
-    unused = sorted(set(cfg.lr_mult) - matched)
+        groups.setdefault(lr_factors[prefix] if prefix is not None else 1.0, []).append(param)
+    unused = sorted(set(lr_factors) - matched)
     if unused:
-        raise ValueError(f"optim.lr_mult: no trainable parameter is named {unused} or below it")
+        raise ValueError(f"learning-rate factors: no trainable parameter is named {unused} or below it")
     param_groups = [{"params": params, "lr": cfg.lr * factor} for factor, params in groups.items()]
     if cfg.name == "adam":
         return torch.optim.Adam(param_groups, lr=cfg.lr, weight_decay=cfg.weight_decay, fused=True)
@@ -49,17 +58,17 @@ def lay_out_state_like_params(optimizer: torch.optim.Optimizer) -> None:
 
 
 class LRFactor:
-    """Linear warmup from ``warmup_factor`` to 1, then x ``gamma`` at each of ``steps`` ("step").
+    """Linear warmup from ``WARMUP_FACTOR`` to 1, then x ``gamma`` at each of ``steps``.
 
     Holds plain numbers only: LambdaLR saves a callable's ``__dict__`` in its state, and
     checkpoints must load with ``torch.load(weights_only=True)``.
     """
 
     def __init__(self, cfg: OptimConfig):
-        self.steps = sorted(cfg.steps) if cfg.schedule == "step" else []
+        self.steps = sorted(cfg.steps)
         self.gamma = cfg.gamma
         self.warmup_iters = cfg.warmup_iters
-        self.warmup_factor = cfg.warmup_factor
+        self.warmup_factor = WARMUP_FACTOR
 
     def __call__(self, iteration: int) -> float:
         factor = self.gamma ** bisect_right(self.steps, iteration)

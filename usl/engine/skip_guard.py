@@ -16,10 +16,13 @@ class TooManySkippedSteps(UslError):
     """Training stopped: the recent steps were mostly non-finite."""
 
 
+WINDOW = 20  # recent steps the skipped fraction is counted over: long enough that one outlier is no trend
+
+
 class SkipGuard:
     """Counts skipped steps in a sliding window of the last ``window`` steps."""
 
-    def __init__(self, max_fraction: float, window: int):
+    def __init__(self, max_fraction: float, window: int = WINDOW):
         self.max_fraction, self.window = max_fraction, window
         self.recent: deque[bool] = deque(maxlen=window)
 
@@ -30,6 +33,6 @@ class SkipGuard:
         if count > self.max_fraction * self.window:
             raise TooManySkippedSteps(
                 f"{count} of the last {len(self.recent)} steps (up to iteration {iteration}) had a non-finite loss "
-                f"or gradient, more than train.max_skipped_fraction={self.max_fraction} of train.skip_window="
-                f"{self.window}; stopping. Check the data (usl-records validate), then lower optim.lr"
+                f"or gradient, more than train.max_skipped_fraction={self.max_fraction} of {self.window}; stopping. "
+                "Check the data (usl-records validate), then lower optim.lr"
             )

@@ -121,7 +121,7 @@ class Trainer:
             dataset, self.sampler, cfg.data.num_workers, pin_memory=info.device.type == "cuda"
         )
         self.iteration, self.epoch, self.batch_in_epoch = 0, 0, 0
-        self.skip_guard = SkipGuard(cfg.train.max_skipped_fraction, cfg.train.skip_window)
+        self.skip_guard = SkipGuard(cfg.train.max_skipped_fraction)
         if resume is not None:
             self.load_state(resume)
         self.log: RunLog | None = None

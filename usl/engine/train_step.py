@@ -30,7 +30,7 @@ class TrainStep:
         self.cfg, self.info = cfg, info
         # before the model exists, so its allocations follow the policy too; here, not in the
         # Trainer, so scripts/bench/train.py times the step usl-train runs
-        if cfg.train.retain_freed_memory and info.device.type == "cpu":
+        if info.device.type == "cpu":
             retain_freed_memory()
         self.model = USLModel(cfg.model, cfg.loss).to(info.device)
         self.model.detector.lay_out_weights_like_features(info.device)  # before DDP lays out its buckets
@@ -42,7 +42,7 @@ class TrainStep:
                 find_unused_parameters=not cfg.loss.weights.mu_2d,  # without L_2D, FPN levels go unused
             )
         self.params = [p for p in self.model.parameters() if p.requires_grad]
-        self.optimizer = build_optimizer(self.model.named_parameters(), cfg.optim)
+        self.optimizer = build_optimizer(self.model.named_parameters(), cfg.optim, self.model.lr_factors())
         self.scheduler = build_scheduler(self.optimizer, cfg.optim)
         self.amp_dtype = AMP_DTYPES.get(cfg.train.amp) if info.device.type == "cuda" else None
         self.scaler = torch.amp.GradScaler("cuda", enabled=self.amp_dtype is torch.float16)

@@ -2,7 +2,7 @@
 
 Here L_2D is Mask R-CNN's detection losses (RPN and box head), L_3D the mean of the
 per-pair ``l2d_loss`` over objects and views, and
-``L_reg = edge * L_edge + offset_l2 * ½‖dV‖² + laplacian * L_laplac + normal * L_normal``
+``mu_reg L_reg = edge * L_edge + offset_l2 * ½‖dV‖² + laplacian * L_laplac + normal * L_normal``
 (normal consistency is not in the paper: an option). Inside L_3D,
 ``dist`` weighs l_dist (``l_2D = dist * l_dist + 1[IoU > t] l_xent``): 0 is Table 1's "w/o l_dist".
 
@@ -25,33 +25,19 @@ Tensor = torch.Tensor
 
 @dataclasses.dataclass(frozen=True)
 class LossWeights:
-    """Weights of the training objective; the defaults are the Hypersim recipe."""
+    """Weights of L = mu_2d L_2D + mu_3d L_3D + the regularizers. The defaults are the paper's Hypersim
+    weights (its Appendix C); the recipes (``usl/configs``) set what differs from them."""
 
-    mu_2d: float = 1.0  # Mask R-CNN detection losses (summed)
+    mu_2d: float = 1.0  # Mask R-CNN detection losses (summed); 0 leaves the RPN and RoI heads untrained
     mu_3d: float = 1.0  # multi-view silhouette loss L_3D
-    mu_reg: float = 1.0  # global factor on the regularizer terms below
-    edge: float = 0.0  # L_edge (Mesh R-CNN's edge length)
-    offset_l2: float = 0.05  # ½‖dV‖² on pre-tanh offsets
-    laplacian: float = 0.0  # uniform Laplacian smoothing
-    normal: float = 0.0  # normal consistency (1 - cos between neighbouring faces' normals)
-    # l_dist inside L_3D (times loss.dist_scale and loss.dist_schedule). 0 is Table 1's "w/o
-    # l_dist": l_dist is not computed at all, so it adds exactly no gradient
-    dist: float = 1.0
-    # soft IoU (SoftRas's silhouette loss, 1 - sum(p t) / sum(p + t - p t)) added to l_xent's pairs
-    # under the same gate: it weighs an object's cells by its own size, so thin parts count
+    edge: float = 0.0  # L_edge, Mesh R-CNN's edge length (paper: 0.1 on Scene-Shapes)
+    offset_l2: float = 0.05  # ½‖dV‖² on the pre-tanh offsets (paper: 0.05 on Hypersim and ScanNet)
+    laplacian: float = 0.0  # uniform Laplacian smoothing (paper: 0.1 on ScanNet)
+    normal: float = 0.0  # normal consistency between neighbouring faces: against folds, for smoother meshes
+    dist: float = 1.0  # l_dist in L_3D (x loss.dist_scale); 0: Table 1's "w/o l_dist", not computed at all
+    # SoftRas's soft IoU next to l_xent, under its gate: each pair counts by its own union, so thin parts
+    # weigh as much as bulky ones
     soft_iou: float = 0.0
-
-    @classmethod
-    def recipe(cls, dataset: str) -> LossWeights:
-        """The paper's weights for "scene_shapes", "hypersim" or "scannet"."""
-        recipes = {
-            "scene_shapes": cls(mu_2d=0.0, mu_3d=1.0, mu_reg=1.0, edge=0.1, offset_l2=0.0, laplacian=0.0),
-            "hypersim": cls(mu_2d=1.0, mu_3d=1.0, mu_reg=1.0, edge=0.0, offset_l2=0.05, laplacian=0.0),
-            "scannet": cls(mu_2d=1.0, mu_3d=1.0, mu_reg=1.0, edge=0.0, offset_l2=0.05, laplacian=0.1),
-        }
-        if dataset not in recipes:
-            raise ValueError(f"LossWeights.recipe: unknown dataset {dataset!r}; known: {sorted(recipes)}")
-        return recipes[dataset]
 
 
 def combine_losses(
@@ -84,7 +70,7 @@ def combine_losses(
         "normal": normal,
     }
     for name, term in regularizers.items():
-        weight = weights.mu_reg * getattr(weights, name)
+        weight = getattr(weights, name)
         if not weight:
             continue
         if term is None:

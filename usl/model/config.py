@@ -4,7 +4,7 @@ training losses ``USLModel`` builds from them (``usl.model.usl_model``)."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, ClassVar
 
 from usl.config_io import ConfigError, check_choice, check_positive
 from usl.losses import LossWeights, PiecewiseLinear
@@ -30,44 +30,31 @@ class LayoutRange:
 
 @dataclass
 class LayoutHeadConfig:
-    in_features: tuple[str, ...] = ("p2",)  # paper Appendix tables: RoIAlign on FPN p2
-    pooler_resolution: int = 7  # RoIAlign bins, then averaged to one 1 x C vector
+    in_features: tuple[str, ...] = ("p2",)  # backbone maps RoIAligned per box (paper: FPN p2)
     num_fc: int = 4  # fully connected layers before the per-category z~, rho~ sigmoids
     fc_dim: int = 256  # width of each of them
-    # Also feed the MLP the 2D box as camera rays (K^-1 at its corners, and its log width and
-    # height): RoIAlign resamples every box to the same grid, so the pooled features lose the
-    # apparent size and image height that tell depth apart. Not in the paper (False there).
+    # Also read the 2D box as camera rays (its corners through K^-1, log width and height): RoIAlign
+    # loses the apparent size that tells depth apart. Not in the paper.
     box_geometry: bool = False
 
 
 @dataclass
 class ShapeHeadConfig:
-    ico_level: int = 3  # subdivisions of the initial ico-sphere (3: 642 vertices, 4: 2562)
+    ico_level: int = 3  # subdivisions of the initial ico-sphere (2: 162 vertices, 3: 642, 4: 2562)
     num_stages: int = 3  # refinement stages S, each {vertex features, graph convs, offsets}
     num_graph_convs: int = 3  # graph convolutions per stage
     hidden_dim: int = 256  # width of the bottleneck and the graph convolutions
-    # Backbone maps sampled at each vertex's projection (each at its own stride) and concatenated:
-    # [p2] (the paper's FPN recipes) or [res2, res3, res4, res5] (Mesh R-CNN's ShapeNet model, R50);
-    # "image" names the normalised input image itself (3 channels, stride 1), e.g. [p2, image]
+    # Maps sampled at each vertex and concatenated: [p2] (FPN), [res2, res3, res4, res5] (plain R50),
+    # "image" the normalised input image (stride 1): colour that from-scratch features blur
     features: tuple[str, ...] = ("p2",)
-    # Mesh R-CNN: each stage's last GraphConv output is concatenated into the next stage's first
-    # GraphConv input (its width grows by hidden_dim); False: stages share only the vertex positions
-    pass_features: bool = False
+    pass_features: bool = False  # each stage's last GraphConv output goes on into the next (Mesh R-CNN)
     sampler: str = "roimap"  # "roimap" (paper) | "vertalign" (Mesh R-CNN's: Table 1's "w/o RoIMap")
-    vertalign_resolution: int = 14  # RoIAlign size of the VertAlign ablation
-    # GraphConv weight init: "normal" N(0, 0.01²) (Mesh R-CNN) | "kaiming" (He init for the
-    # neighbourhood sum): with "normal" three GraphConvs pass ~1% of the image features on
+    # GraphConv init: "normal" N(0, 0.01²) (Mesh R-CNN's; passes ~1% of the image features on after
+    # three convs) | "kaiming" (He init: the features reach the offsets, for short runs)
     graph_conv_init: str = "normal"
-    # Bottleneck Linear init: "torch" (PyTorch's default, uniform with std 1/sqrt(3 fan_in)) |
-    # "normal" (N(0, 0.01²), bias 0: Mesh R-CNN's)
-    bottleneck_init: str = "torch"
-    # Width of a global deformation stage before the refinement stages: an MLP from the object's
-    # RoIAlign features (the layout head's pooled input, flattened) to an offset of every vertex,
-    # V_g = sphere + tanh(MLP), each vertex with output weights of its own (CMR's shape decoder).
-    # A refinement stage sees one pixel per vertex and ~6 graph hops; this stage sees the whole
-    # object at once, so an offset may follow from what the image shows anywhere in the box. It
-    # learns stably at a tenth of the rate (optim.lr_mult={shape_head.global_mlp: 0.1}, tiny's): at
-    # the full rate its tanh can saturate within a few hundred iterations. 0: the paper's head.
+    bottleneck_init: str = "torch"  # bottleneck Linear init: "torch" (PyTorch's) | "normal" (Mesh R-CNN's N(0, 0.01²))
+    # Width of an MLP from the box's RoIAlign features to every vertex's offset, before the refinement
+    # stages: the whole object decides the shape (it learns at lr / 10). 0: none (the paper)
     global_stage: int = 0
 
     def __post_init__(self) -> None:
@@ -86,22 +73,19 @@ DETECTOR_PRESETS = {"default": DetectorConfig, "r50": DetectorConfig.r50, "tiny"
 
 @dataclass
 class ModelConfig:
-    # Defaults the ``detector`` section starts from: "default" (Mask R-CNN R50-FPN), "r50" (a plain
-    # R50 exposing res2..res5, RPN and RoI heads on res4: ``DetectorConfig.r50()``) or "tiny"
-    # (``DetectorConfig.tiny()``, for CPU runs); the recipe's ``detector`` keys apply on top.
+    # Defaults the ``detector`` keys start from: "default" (Mask R-CNN R50-FPN), "r50" (plain R50, heads
+    # on res4: DetectorConfig.r50) or "tiny" (quarter-width R18-FPN for CPU runs: DetectorConfig.tiny)
     detector_preset: str = "default"
     detector: DetectorConfig = field(default_factory=DetectorConfig)
     layout: LayoutHeadConfig = field(default_factory=LayoutHeadConfig)
     shape: ShapeHeadConfig = field(default_factory=ShapeHeadConfig)
-    # Filled from the records manifest when empty (categories in data_specs order, layout ranges).
-    categories: tuple[str, ...] = ()
+    categories: tuple[str, ...] = ()  # category names; empty: the records manifest's, in data_specs order
     category_ids: tuple[int, ...] = ()  # the dataset's id of each category (what records, COCO and GLB use)
     layout_range: LayoutRange = field(default_factory=LayoutRange)
-    # Local pretrained checkpoint for the whole detector (never downloaded): a torchvision
-    # maskrcnn_resnet50_fpn or resnet50 state dict, or a detectron2 model zoo / MSRA R-50 .pkl
-    # (usl.model.pretrained). "auto" tells the formats apart by suffix (.pkl: detectron2).
+    # Local pretrained checkpoint for the detector (never downloaded): torchvision's Mask R-CNN or ResNet-50
+    # .pth, or a detectron2 model zoo / MSRA R-50 .pkl (usl.model.pretrained)
     init_weights: str = ""
-    init_format: str = "auto"  # "auto" | "torchvision" | "detectron2"
+    init_format: str = "auto"  # "auto" (by suffix: .pkl is detectron2) | "torchvision" | "detectron2"
 
     def __post_init__(self) -> None:
         check_choice("model.init_format", self.init_format, INIT_FORMATS)
@@ -117,67 +101,42 @@ _SOFT = SoftRasterSettings()
 class RenderConfig:
     """Dynamic soft rendering for l_xent; defaults are ``usl.render.SoftRasterSettings``'s."""
 
+    padding: ClassVar[float] = 0.05  # window margin, as a fraction of its longer side
+
     resolution: int = 72  # side of every dynamic-rendering window (paper: 128 Scene-Shapes, 72 others)
     sigma: float = _SOFT.sigma  # sharpness of the soft silhouette (SoftRas sigma)
     blur_radius: float = _SOFT.blur_radius  # faces farther than this from a pixel do not touch it
     # the nearest faces by depth blended per pixel; null blends every face within the blur radius
     # (SoftRas), which skips the per-pixel depth sort
     faces_per_pixel: int | None = _SOFT.faces_per_pixel
-    padding: float = 0.05  # window margin, as a fraction of its longer side
 
     def settings(self) -> SoftRasterSettings:
         return SoftRasterSettings(sigma=self.sigma, blur_radius=self.blur_radius, faces_per_pixel=self.faces_per_pixel)
 
 
 @dataclass
-class Mesh3DLossConfig:
-    """Mesh R-CNN's 3D mesh losses (``loss.supervision=3d``). Defaults: its ShapeNet config
-    (meshrcnn ``configs/shapenet``: CHAMFER_LOSS_WEIGHT 1.0, NORMALS_LOSS_WEIGHT 0.0, EDGE_LOSS_WEIGHT 0.2,
-    GT_NUM_SAMPLES = PRED_NUM_SAMPLES = 5000)."""
-
-    chamfer: float = 1.0  # Chamfer-L2 between points on the predicted and the true mesh (m^2)
-    normals: float = 0.0  # 1 - |cos| between the normals of nearest point pairs, both ways
-    edge: float = 0.2  # squared edge length of the predicted mesh in the camera frame (m^2)
-    num_samples: int = 5000  # points sampled on each predicted and each true mesh
-
-
-@dataclass
 class LossConfig:
     weights: LossWeights = field(default_factory=LossWeights)
     render: RenderConfig = field(default_factory=RenderConfig)
-    # l_dist is a squared distance in units of the image's longer side; this factor sets its unit
-    # against l_xent (a per-pixel mean) and the regularizers (the paper leaves the unit open).
-    # 1024 = (1/32 of the longer side)^-2: an error of 1/32 of the image costs 1, so the layout
-    # signal is not drowned by l_xent and the regularizers at any image resolution.
+    # l_dist's unit against l_xent and the regularizers: an error of 1/32 of the image's longer side
+    # costs 1 at 1024 = 32², at any resolution (the paper leaves the unit open)
     dist_scale: float = 1024.0
-    # Factor on dist_scale by iteration (piecewise linear through iters/values; empty = 1, the
-    # paper's constant balance). E.g. {iters: [300, 900], values: [1.0, 0.25]} lets l_dist place
-    # the layout first, then hands the shape to l_xent.
+    # Factor on dist_scale by iteration (empty: 1, the paper's): l_dist may place the layout first, then
+    # hand the shape over to l_xent, e.g. {iters: [300, 900], values: [1.0, 0.25]}
     dist_schedule: PiecewiseLinear = field(default_factory=PiecewiseLinear)
-    mesh_points: int = 1000  # points sampled on each mesh surface for l_dist
-    mask_points: int = 1000  # points sampled in each true silhouette for l_dist
-    # The IoU gate of Eq. 4, the key Table 1's ablations vary: with loss.xent_gate=iou, l_xent applies
-    # to an (object, view) pair only when IoU(rendered > 0.5, true) exceeds this (paper: 0.5).
-    iou_threshold: float = 0.5
-    # Which pairs l_xent applies to: "iou" (paper Eq. 4, also for Table 1's "w/o l_dist" row: only
-    # l_dist is removed) or "all" (no gate: to ablate Eq. 4's gate). Without l_dist neither trains at
-    # CPU scale: gated, other-view pairs fall below the threshold and z, rho get no gradient;
-    # ungated, l_xent drives z and rho to the ends of their range, where the silhouettes vanish.
+    mesh_points: int = 1000  # points sampled on each mesh surface and in each true silhouette for l_dist
+    iou_threshold: float = 0.5  # the IoU gate of Eq. 4: l_xent applies to an (object, view) above it (paper: 0.5)
+    # Pairs l_xent applies to: "iou" (the gate of Eq. 4) | "all" (no gate: Table 1's ablation of it)
     xent_gate: str = "iou"
-    # The gate exists because l_xent says nothing about layout when silhouettes do not overlap.
-    # In the input view they always do: the 2D box fixes the projection whatever z and rho are.
-    # False applies l_xent there ungated, so thin objects (tables start at IoU ~0.2) get a shape
-    # signal from the first step; True is the paper's gate in every view.
+    # False: no gate in the input view, where the 2D box fixes the silhouette whatever z and rho are,
+    # so thin objects get a shape signal from the first step. True: the paper's gate in every view
     gate_input_view: bool = True
-    # True masks show only visible parts. True: cells covered by another object's true mask are
-    # left out of this object's l_xent (it may be hidden there), instead of teaching it to carve
-    # away what an occluder covers. False: the paper's per-object comparison.
+    # True masks show visible parts only: True leaves pixels another object's true mask covers out of
+    # l_xent, instead of carving away what an occluder hides. False: the paper's
     ignore_occluders: bool = False
-    # "2d": the paper's multi-view silhouette loss L_3D. "3d": Mesh R-CNN's losses against the
-    # objects table's true meshes instead (Table 1's "Mesh R-CNN (3D sup.)" upper bound, Scene-Shapes
-    # only): Chamfer, normal and edge terms on points in the input camera's frame (loss.mesh3d).
+    # "2d": the paper's multi-view silhouette loss L_3D | "3d": Mesh R-CNN's losses against the true
+    # meshes (Table 1's "Mesh R-CNN (3D sup.)" upper bound; Scene-Shapes only)
     supervision: str = "2d"
-    mesh3d: Mesh3DLossConfig = field(default_factory=Mesh3DLossConfig)
 
     def __post_init__(self) -> None:
         check_choice("loss.xent_gate", self.xent_gate, ("iou", "all"))

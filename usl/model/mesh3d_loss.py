@@ -4,7 +4,7 @@ objects table's true meshes instead of the multi-view silhouette loss.
 Each refinement stage's mesh is cast into the input camera's frame by the same frustum map as the
 prediction and compared with the object's true mesh in that frame, so the layout (z, rho) is
 supervised together with the shape. As in Mesh R-CNN, the terms are averaged over the stages and
-weighted by ``loss.mesh3d`` (its ShapeNet weights by default). Normalised like the 2D L_3D: a mean
+weighted by its ShapeNet config (``MESH_RCNN_SHAPENET``). Normalised like the 2D L_3D: a mean
 over each image's objects, then over the batch (images without objects count 0), so DDP's
 averaging of per-GPU losses gives exactly the whole batch's gradient.
 """
@@ -13,7 +13,8 @@ from __future__ import annotations
 
 import torch
 
-from usl.model.config import Mesh3DLossConfig
+from dataclasses import dataclass
+
 from usl.data.samples import MultiViewSample
 from usl.geometry import Meshes, sample_points_from_meshes
 from usl.losses import chamfer_normal_loss, mesh_edge_loss
@@ -21,12 +22,25 @@ from usl.losses import chamfer_normal_loss, mesh_edge_loss
 Tensor = torch.Tensor
 
 
+@dataclass(frozen=True)
+class Mesh3DLossWeights:
+    chamfer: float  # Chamfer-L2 between points on the predicted and the true mesh (m^2)
+    normals: float  # 1 - |cos| between the normals of nearest point pairs, both ways
+    edge: float  # squared edge length of the predicted mesh in the camera frame (m^2)
+    num_samples: int  # points sampled on each predicted and each true mesh
+
+
+# Mesh R-CNN's configs/shapenet: CHAMFER_LOSS_WEIGHT 1.0, NORMALS_LOSS_WEIGHT 0.0, EDGE_LOSS_WEIGHT 0.2,
+# GT_NUM_SAMPLES = PRED_NUM_SAMPLES = 5000: the baseline is that model's losses, so they are fixed
+MESH_RCNN_SHAPENET = Mesh3DLossWeights(chamfer=1.0, normals=0.0, edge=0.2, num_samples=5000)
+
+
 def mesh_supervision_loss(
     stage_verts_cam: list[Tensor],
     faces: Tensor,
     samples: list[MultiViewSample],
     counts: list[int],
-    cfg: Mesh3DLossConfig,
+    cfg: Mesh3DLossWeights = MESH_RCNN_SHAPENET,
 ) -> tuple[Tensor, dict[str, Tensor]]:
     """``(L_3D, stats)`` for a batch. ``stage_verts_cam[s]`` (N, V, 3) holds stage s's meshes of all
     objects in their input camera's frame, sample by sample (``counts[i]`` objects of sample i, in

@@ -195,7 +195,7 @@ def _gather_pairs(
             continue
         masks = _view_masks(sample)
         true_points, true_lengths = sample_mask_points(
-            masks if isinstance(masks, Tensor) else stack_masks(masks), cfg.mask_points, generator=generators[index]
+            masks if isinstance(masks, Tensor) else stack_masks(masks), cfg.mesh_points, generator=generators[index]
         )
         parts["true_points"].append(true_points)
         parts["true_lengths"].append(true_lengths)

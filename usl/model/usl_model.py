@@ -24,7 +24,10 @@ from usl.geometry import cube_to_frustum
 from usl.losses import combine_losses
 from usl.model.backbone import IMAGENET_MEAN, IMAGENET_STD, ShapeSpec
 from usl.model.detector import ImageList, MaskRCNN, MultiScaleRoIAlign
+from usl.model.detector.roi_heads import CANONICAL_LEVEL, POOLER_SAMPLING_RATIO
 from usl.model.heads import LayoutHead, LayoutPrediction, ShapeHead, ShapePrediction
+from usl.model.heads.layout import POOLER_RESOLUTION as LAYOUT_POOLER_RESOLUTION
+from usl.model.heads.shape import GLOBAL_STAGE_LR_FACTOR
 from usl.model.mesh3d_loss import mesh_supervision_loss
 from usl.model.multiview_loss import REGULARIZERS, multiview_silhouette_loss, shape_regularizers
 from usl.model.ops import autocast_off
@@ -71,18 +74,17 @@ class USLModel(nn.Module):
         for name in cfg.layout.in_features:
             if name not in shapes:
                 raise ValueError(f"model.layout.in_features: backbone has no feature {name!r}; it has {sorted(shapes)}")
-        roi_cfg = cfg.detector.roi_heads
         self.layout_pooler = MultiScaleRoIAlign(
             cfg.layout.in_features,
             [shapes[n].stride for n in cfg.layout.in_features],
-            cfg.layout.pooler_resolution,
-            0,
-            roi_cfg.canonical_box_size,
-            roi_cfg.canonical_level,
+            LAYOUT_POOLER_RESOLUTION,
+            POOLER_SAMPLING_RATIO,
+            cfg.detector.roi_heads.canonical_box_size,
+            CANONICAL_LEVEL,
         )
         in_channels = shapes[cfg.layout.in_features[0]].channels
         self.layout_head = LayoutHead(in_channels, len(cfg.categories), cfg.layout, cfg.layout_range)
-        roi_dim = in_channels * cfg.layout.pooler_resolution**2  # the global shape stage reads the layout head's RoIs
+        roi_dim = in_channels * LAYOUT_POOLER_RESOLUTION**2  # the global shape stage reads the layout head's RoIs
         self.shape_head = ShapeHead({**shapes, IMAGE_MAP: ShapeSpec(channels=3, stride=1)}, cfg.shape, roi_dim)
         if cfg.init_weights and load_init_weights:
             print_report(init_detector(self.detector, cfg.init_weights, cfg.init_format))
@@ -98,6 +100,10 @@ class USLModel(nn.Module):
     def faces(self) -> Tensor:
         """(F, 3) int64 faces shared by every predicted mesh."""
         return self.shape_head.faces
+
+    def lr_factors(self) -> dict[str, float]:
+        """Learning-rate factors by parameter-name prefix, for parts that need their own rate."""
+        return {"shape_head.global_mlp": GLOBAL_STAGE_LR_FACTOR} if self.shape_head.global_mlp is not None else {}
 
     # ------------------------------------------------------------------ shared parts
     def _backbone(self, frames: Sequence[FrameData]) -> tuple[ImageList, dict[str, Tensor]]:
@@ -161,12 +167,10 @@ class USLModel(nn.Module):
         )
         with autocast_off(outputs.verts_cam.device.type):
             if self.loss_cfg.supervision == "3d":
-                l3d, stats = mesh_supervision_loss(
-                    outputs.stage_verts_cam(), self.faces, samples, outputs.counts, self.loss_cfg.mesh3d
-                )
+                l3d, stats = mesh_supervision_loss(outputs.stage_verts_cam(), self.faces, samples, outputs.counts)
             else:
                 l3d, stats = self._silhouette_loss(outputs, samples, iteration, diagnostics)
-            need = {name: bool(getattr(weights, name) * weights.mu_reg) for name in REGULARIZERS}
+            need = {name: bool(getattr(weights, name)) for name in REGULARIZERS}
             regs = shape_regularizers(
                 outputs.shape.verts, outputs.shape.offsets, self.shape_head.template, outputs.counts, need
             )

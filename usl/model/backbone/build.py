@@ -25,7 +25,7 @@ class ShapeSpec:
 
 @dataclass
 class ResNetConfig:
-    depth: int = 50
+    depth: int = 50  # 18, 34 (basic blocks), 50, 101 (bottlenecks): as the init weights were trained
     base_channels: int = 64  # width of the stem; stages have 1x, 2x, 4x, 8x (x4 for bottlenecks)
     norm: str = "FrozenBN"  # "BN" or "FrozenBN"
     freeze_at: int = 2  # 0: train all; 1: freeze stem; k: also freeze the first k-1 stages
@@ -36,8 +36,7 @@ class ResNetConfig:
 
 @dataclass
 class FPNConfig:
-    out_channels: int = 256
-    add_p6: bool = True
+    out_channels: int = 256  # channels of every FPN level (p2..p6, p6 a stride-2 max-pool of p5)
 
 
 @dataclass
@@ -116,7 +115,7 @@ def build_resnet(cfg: BackboneConfig) -> ResNetBackbone:
 @BACKBONES.register("resnet_fpn")
 def build_resnet_fpn(cfg: BackboneConfig) -> ResNetFPN:
     resnet = _build_resnet(cfg)
-    fpn = FPN(resnet.stage_channels, STAGE_OUTPUTS, cfg.fpn.out_channels, cfg.fpn.add_p6)
+    fpn = FPN(resnet.stage_channels, STAGE_OUTPUTS, cfg.fpn.out_channels)
     return ResNetFPN(resnet, fpn)
 
 

@@ -13,7 +13,7 @@ Tensor = torch.Tensor
 
 
 class FPN(nn.Module):
-    """Top-down pathway with lateral 1x1 and output 3x3 convs, plus an optional P6.
+    """Top-down pathway with lateral 1x1 and output 3x3 convs, plus P6.
 
     Input ``c{k}`` maps (stride ``2**k``) become ``p{k}`` maps with ``out_channels``
     channels; ``P6`` is a stride-2 subsampling of P5 (max-pool, kernel 1), used only
@@ -25,7 +25,6 @@ class FPN(nn.Module):
         in_channels: Mapping[str, int],
         in_strides: Mapping[str, int],
         out_channels: int = 256,
-        add_p6: bool = True,
     ):
         super().__init__()
         self.in_features = list(in_channels)
@@ -34,8 +33,7 @@ class FPN(nn.Module):
             raise ValueError(f"FPN inputs must have consecutive power-of-two strides, got {dict(in_strides)}")
         self.lateral_convs = nn.ModuleList(nn.Conv2d(in_channels[n], out_channels, 1) for n in self.in_features)
         self.output_convs = nn.ModuleList(nn.Conv2d(out_channels, out_channels, 3, padding=1) for _ in self.in_features)
-        self.add_p6 = add_p6
-        out_levels = levels + ([levels[-1] + 1] if add_p6 else [])
+        out_levels = [*levels, levels[-1] + 1]
         self.out_strides = {f"p{level}": 2**level for level in out_levels}
         self.out_channels = out_channels
         for conv in [*self.lateral_convs, *self.output_convs]:
@@ -53,6 +51,5 @@ class FPN(nn.Module):
             # Upsample to the lateral's size (not by 2) so odd input sizes also work.
             top_down = lateral + F.interpolate(top_down, size=lateral.shape[-2:], mode="nearest")
             results.insert(0, self.output_convs[index](top_down))
-        if self.add_p6:
-            results.append(F.max_pool2d(results[-1], kernel_size=1, stride=2))
+        results.append(F.max_pool2d(results[-1], kernel_size=1, stride=2))
         return dict(zip(names, results))

@@ -14,10 +14,13 @@ from torch import nn
 from usl.utils.transfer import to_device
 
 from ..ops import Box2BoxTransform, batched_nms, kept_by_image
-from .config import BoxHeadConfig
 from .structures import Instances
 
 Tensor = torch.Tensor
+
+# detectron2's MODEL.ROI_BOX_HEAD defaults (detectron2/config/defaults.py), constants here: no recipe changes them
+BBOX_REG_WEIGHTS = (10.0, 10.0, 5.0, 5.0)  # (dx, dy, dw, dh) scales of the box deltas
+SMOOTH_L1_BETA = 0.0  # 0: the L1 loss
 
 
 class FastRCNNFCHead(nn.Module):
@@ -42,17 +45,16 @@ class FastRCNNFCHead(nn.Module):
 class FastRCNNOutputLayers(nn.Module):
     """Scores over ``num_classes + 1`` (background is the LAST index) and 4 deltas per class."""
 
-    def __init__(self, in_dim: int, num_classes: int, cfg: BoxHeadConfig):
+    def __init__(self, in_dim: int, num_classes: int):
         super().__init__()
         self.num_classes = num_classes
-        self.cfg = cfg
         self.cls_score = nn.Linear(in_dim, num_classes + 1)
         self.bbox_pred = nn.Linear(in_dim, num_classes * 4)
         nn.init.normal_(self.cls_score.weight, std=0.01)
         nn.init.normal_(self.bbox_pred.weight, std=0.001)
         nn.init.zeros_(self.cls_score.bias)
         nn.init.zeros_(self.bbox_pred.bias)
-        self.box2box = Box2BoxTransform(cfg.bbox_reg_weights)
+        self.box2box = Box2BoxTransform(BBOX_REG_WEIGHTS)
 
     def forward(self, x: Tensor) -> tuple[Tensor, Tensor]:
         return self.cls_score(x), self.bbox_pred(x)
@@ -84,12 +86,8 @@ class FastRCNNOutputLayers(nn.Module):
             foreground = to_device(rows, gt_classes.device, torch.long)  # one upload, queued without a wait
         predicted = deltas.view(len(deltas), self.num_classes, 4)[foreground, gt_classes[foreground]]
         target = self.box2box.get_deltas(proposal_boxes[foreground], gt_boxes[foreground])
-        loss_box = F.smooth_l1_loss(predicted, target, beta=self.cfg.smooth_l1_beta, reduction="sum")
-        weight = self.cfg.loss_weight
-        return {
-            "loss_cls": F.cross_entropy(logits, gt_classes) * weight,
-            "loss_box_reg": loss_box / gt_classes.numel() * weight,
-        }
+        loss_box = F.smooth_l1_loss(predicted, target, beta=SMOOTH_L1_BETA, reduction="sum")
+        return {"loss_cls": F.cross_entropy(logits, gt_classes), "loss_box_reg": loss_box / gt_classes.numel()}
 
     @torch.no_grad()
     def inference(

@@ -9,92 +9,45 @@ from ..backbone import BackboneConfig, ResNetConfig
 
 @dataclass
 class AnchorConfig:
-    sizes: tuple[tuple[float, ...], ...] = ((32,), (64,), (128,), (256,), (512,))  # one tuple per RPN level
-    aspect_ratios: tuple[float, ...] = (0.5, 1.0, 2.0)  # height / width
-    offset: float = 0.0
+    sizes: tuple[tuple[float, ...], ...] = ((32,), (64,), (128,), (256,), (512,))  # pixels, one tuple per RPN level
+    aspect_ratios: tuple[float, ...] = (0.5, 1.0, 2.0)  # height / width: widen it for long thin objects
 
 
 @dataclass
 class RPNConfig:
-    in_features: tuple[str, ...] = ("p2", "p3", "p4", "p5", "p6")
+    in_features: tuple[str, ...] = ("p2", "p3", "p4", "p5", "p6")  # backbone maps the RPN proposes on
     anchors: AnchorConfig = field(default_factory=AnchorConfig)
-    iou_thresholds: tuple[float, float] = (0.3, 0.7)  # below: background, above: foreground
-    batch_size_per_image: int = 256
-    positive_fraction: float = 0.5
-    bbox_reg_weights: tuple[float, float, float, float] = (1.0, 1.0, 1.0, 1.0)
-    smooth_l1_beta: float = 0.0  # 0 gives the L1 loss
-    pre_nms_topk_train: int = 2000  # per level
-    pre_nms_topk_test: int = 1000  # per level
-    post_nms_topk_train: int = 1000  # per image
-    post_nms_topk_test: int = 1000  # per image
-    nms_thresh: float = 0.7
-    min_box_size: float = 0.0
-    loss_weight: float = 1.0
+    batch_size_per_image: int = 256  # anchors sampled per image for the RPN losses
+    pre_nms_topk_train: int = 2000  # proposals kept per level before NMS, in training (fewer: faster)
+    pre_nms_topk_test: int = 1000  # the same at inference
+    post_nms_topk_train: int = 1000  # proposals kept per image after NMS, in training
+    post_nms_topk_test: int = 1000  # the same at inference
+    nms_thresh: float = 0.7  # proposals overlapping a better one by more than this IoU are dropped
 
 
 @dataclass
 class BoxHeadConfig:
-    pooler_resolution: int = 7
-    pooler_sampling_ratio: int = 0  # <= 0: adaptive
-    num_fc: int = 2
-    fc_dim: int = 1024
-    bbox_reg_weights: tuple[float, float, float, float] = (10.0, 10.0, 5.0, 5.0)
-    smooth_l1_beta: float = 0.0
-    loss_weight: float = 1.0
+    fc_dim: int = 1024  # width of the box head's two FC layers
 
 
 @dataclass
 class MaskHeadConfig:
-    enabled: bool = True
-    pooler_resolution: int = 14  # masks are predicted at twice this (28x28)
-    pooler_sampling_ratio: int = 0
-    num_conv: int = 4
-    conv_dim: int = 256
-    loss_weight: float = 1.0
-
-
-@dataclass
-class PointRendConfig:
-    """PointRend's mask branch (Kirillov et al. 2020) as detectron2's ``pointrend_rcnn_R_50_FPN`` builds it.
-
-    A coarse head predicts ``coarse_resolution``-square logits per class from a regular grid of
-    features; the point head then re-predicts single points from fine features plus the coarse
-    logits. Inference starts from a regular grid and, ``subdivision_steps`` times, doubles the
-    resolution and re-predicts the ``subdivision_num_points`` most uncertain cells (7 -> 224).
-    """
-
-    in_feature: str = "p2"  # both heads read the finest FPN level
-    pooler_resolution: int = 14  # the coarse head's regular grid of samples per box
-    conv_dim: int = 256
-    num_fc: int = 2
-    fc_dim: int = 1024
-    coarse_resolution: int = 7
-    point_num_fc: int = 3
-    point_fc_dim: int = 256
-    train_num_points: int = 14 * 14
-    oversample_ratio: int = 3  # training: candidates per point (k in the paper)
-    importance_sample_ratio: float = 0.75  # training: share of points picked by uncertainty (beta)
-    subdivision_steps: int = 5
-    subdivision_num_points: int = 28 * 28
+    num_conv: int = 4  # 3 x 3 convs before the 2x deconv to 28 x 28 masks
+    conv_dim: int = 256  # their width
 
 
 @dataclass
 class ROIHeadsConfig:
-    name: str = "standard"  # key in ROI_HEADS: "standard" (Mask R-CNN) | "point_rend"
-    in_features: tuple[str, ...] = ("p2", "p3", "p4", "p5")
-    batch_size_per_image: int = 512
-    positive_fraction: float = 0.25
-    iou_threshold: float = 0.5  # proposals at or above it are foreground
-    proposal_append_gt: bool = True
-    canonical_box_size: float = 224.0  # a box of this size is pooled from canonical_level (FPN paper, eq. 1)
-    canonical_level: int = 4
-    score_thresh_test: float = 0.05
-    nms_thresh_test: float = 0.5
-    detections_per_image: int = 100
+    name: str = "standard"  # mask branch, a key in ROI_HEADS: "standard" (Mask R-CNN) | "point_rend" (224² masks)
+    in_features: tuple[str, ...] = ("p2", "p3", "p4", "p5")  # backbone maps the RoI heads pool from
+    batch_size_per_image: int = 512  # proposals sampled per image for the box and mask losses
+    canonical_box_size: float = 224.0  # boxes this big pool from level 4 (FPN eq. 1): scale it with the images
+    score_thresh_test: float = 0.05  # detections scoring below this are dropped
+    nms_thresh_test: float = 0.5  # per-class NMS IoU of the detections
+    detections_per_image: int = 100  # at most this many detections per image
     mask_threshold: float = 0.5  # pasted mask probabilities at or above it are foreground
     box_head: BoxHeadConfig = field(default_factory=BoxHeadConfig)
     mask_head: MaskHeadConfig = field(default_factory=MaskHeadConfig)
-    point_rend: PointRendConfig = field(default_factory=PointRendConfig)  # the mask branch of "point_rend"
 
 
 @dataclass
@@ -126,11 +79,6 @@ class DetectorConfig:
             ),
             roi_heads=ROIHeadsConfig(in_features=("res4",)),
         )
-
-    @classmethod
-    def point_rend(cls) -> "DetectorConfig":
-        """PointRend R50-FPN (detectron2's ``pointrend_rcnn_R_50_FPN_3x_coco``): Mask R-CNN with PointRend's mask branch."""
-        return cls(roi_heads=ROIHeadsConfig(name="point_rend"))
 
     @classmethod
     def tiny(cls) -> "DetectorConfig":

@@ -94,10 +94,9 @@ class MaskRCNN(nn.Module):
         features = self.backbone(image_list.tensor)
         proposals, _ = self.proposal_generator(image_list, features, None)
         detections = self.roi_heads.forward_box(features, proposals)
-        if self.roi_heads.mask_on:
-            probabilities = self.roi_heads.mask_probabilities(features, detections)
-            for instances, probs in zip(detections, probabilities.split([len(d) for d in detections])):
-                instances.mask_probs = probs
+        probabilities = self.roi_heads.mask_probabilities(features, detections)
+        for instances, probs in zip(detections, probabilities.split([len(d) for d in detections])):
+            instances.mask_probs = probs
         return detections
 
     def targets_to_instances(
@@ -118,14 +117,13 @@ class MaskRCNN(nn.Module):
                     f"got {tuple(boxes.shape)} and {tuple(labels.shape)}"
                 )
             fields = {"gt_boxes": boxes.to(device, torch.float32), "gt_classes": labels.to(device, torch.long)}
-            if self.roi_heads.mask_on:
-                masks = target.get("masks")
-                if masks is None or tuple(masks.shape) != (len(boxes), *size):
-                    shape = None if masks is None else tuple(masks.shape)
-                    raise InvalidTargetError(
-                        f"target {index}: masks must be (K, h, w) = {(len(boxes), *size)}, got {shape}"
-                    )
-                fields["gt_masks"] = masks.to(device, torch.bool)
+            masks = target.get("masks")
+            if masks is None or tuple(masks.shape) != (len(boxes), *size):
+                shape = None if masks is None else tuple(masks.shape)
+                raise InvalidTargetError(
+                    f"target {index}: masks must be (K, h, w) = {(len(boxes), *size)}, got {shape}"
+                )
+            fields["gt_masks"] = masks.to(device, torch.bool)
             converted.append(Instances(size, **fields))
         self._check_labels([instances.gt_classes for instances in converted])
         return converted

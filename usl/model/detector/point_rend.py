@@ -17,17 +17,37 @@ Every step runs on all instances of all images at once; only feature sampling lo
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Mapping, Optional
 
 import torch
 import torch.nn.functional as F
 from torch import nn
 
-from .config import PointRendConfig
 from .mask_head import batch_mask_targets, mask_rcnn_loss
 from .structures import Instances
 
 Tensor = torch.Tensor
+
+
+@dataclass(frozen=True)
+class PointRendSettings:
+    """The sizes of detectron2's ``pointrend_rcnn_R_50_FPN`` (``MODEL.POINT_HEAD`` and
+    ``MODEL.ROI_MASK_HEAD``): fixed, since they are what its model-zoo weights were trained with."""
+
+    in_feature: str = "p2"  # both heads read the finest FPN level
+    pooler_resolution: int = 14  # the coarse head's regular grid of samples per box
+    conv_dim: int = 256
+    num_fc: int = 2
+    fc_dim: int = 1024
+    coarse_resolution: int = 7
+    point_num_fc: int = 3
+    point_fc_dim: int = 256
+    train_num_points: int = 14 * 14
+    oversample_ratio: int = 3  # training: candidates per point (k in the paper)
+    importance_sample_ratio: float = 0.75  # training: share of points picked by uncertainty (beta)
+    subdivision_steps: int = 5  # inference: each doubles the resolution (7 -> 224)
+    subdivision_num_points: int = 28 * 28  # inference: cells re-predicted per step
 
 
 def point_sample(maps: Tensor, points: Tensor) -> Tensor:
@@ -87,7 +107,7 @@ def most_uncertain_cells(logits: Tensor, count: int) -> tuple[Tensor, Tensor]:
 class CoarseMaskHead(nn.Module):
     """Regular-grid features (R, C, S, S) -> coarse logits (R, K, r, r): 2x2/2 conv, FCs, a linear layer."""
 
-    def __init__(self, channels: int, num_classes: int, cfg: PointRendConfig):
+    def __init__(self, channels: int, num_classes: int, cfg: PointRendSettings):
         super().__init__()
         if channels > cfg.conv_dim:  # detectron2 would put a 1x1 reduction conv first: another layout
             raise ValueError(f"PointRend's coarse head needs conv_dim >= the {channels} feature channels")
@@ -115,7 +135,7 @@ class CoarseMaskHead(nn.Module):
 class PointHead(nn.Module):
     """Per-point MLP over [fine feature, coarse logits]; the coarse logits join every layer's input."""
 
-    def __init__(self, channels: int, num_classes: int, cfg: PointRendConfig):
+    def __init__(self, channels: int, num_classes: int, cfg: PointRendSettings):
         super().__init__()
         dims = [channels] + [cfg.point_fc_dim] * cfg.point_num_fc
         self.fcs = nn.ModuleList(nn.Conv1d(a + num_classes, b, kernel_size=1) for a, b in zip(dims[:-1], dims[1:]))
@@ -147,7 +167,7 @@ class PointHead(nn.Module):
 class PointRendMaskHead(nn.Module):
     """Coarse head + point head on one feature map; see the module docstring."""
 
-    def __init__(self, channels: int, stride: int, num_classes: int, cfg: PointRendConfig):
+    def __init__(self, channels: int, stride: int, num_classes: int, cfg: PointRendSettings):
         super().__init__()
         self.cfg = cfg
         self.stride = stride

@@ -25,7 +25,7 @@ from .mask_head import (
     select_class_masks,
 )
 from .matcher import Matcher, label_counts, subsample_labels
-from .point_rend import PointRendMaskHead
+from .point_rend import PointRendMaskHead, PointRendSettings
 from .poolers import MultiScaleRoIAlign
 from .structures import Instances
 
@@ -33,10 +33,20 @@ Tensor = torch.Tensor
 
 ROI_HEADS = Registry("ROI heads")
 
+# detectron2's MODEL.ROI_HEADS / ROI_BOX_HEAD / ROI_MASK_HEAD defaults (detectron2/config/defaults.py),
+# constants here: no recipe changes them
+IOU_THRESHOLD = 0.5  # proposals at or above it are foreground (IOU_THRESHOLDS)
+POSITIVE_FRACTION = 0.25  # at most this share of the sampled proposals is foreground
+CANONICAL_LEVEL = 4  # a box of canonical_box_size pools from this FPN level (FPN paper, eq. 1)
+BOX_POOLER_RESOLUTION = 7  # RoIAlign output of the box head
+BOX_NUM_FC = 2  # FC layers of the box head
+MASK_POOLER_RESOLUTION = 14  # RoIAlign output of the mask head (masks are predicted at twice this)
+POOLER_SAMPLING_RATIO = 0  # RoIAlign samples per bin: adaptive
+
 
 @ROI_HEADS.register("standard")
 class StandardROIHeads(nn.Module):
-    """Box head (always) and mask head (``cfg.mask_head.enabled``) over sampled proposals.
+    """Box head and mask head over sampled proposals.
 
     ``forward`` returns ``(instances, losses)``: in training the sampled proposals (fields
     ``proposal_boxes``, ``gt_classes``, ``gt_boxes``, ``gt_index``) and the branch losses;
@@ -50,29 +60,26 @@ class StandardROIHeads(nn.Module):
         shapes = [input_shape[name] for name in cfg.in_features]
         channels = shapes[0].channels
         strides = [s.stride for s in shapes]
-        self.matcher = Matcher([cfg.iou_threshold], [0, 1], allow_low_quality_matches=False)
-        box_cfg = cfg.box_head
-        self.box_pooler = self._pooler(box_cfg.pooler_resolution, box_cfg.pooler_sampling_ratio, strides)
-        self.box_head = FastRCNNFCHead(channels, box_cfg.pooler_resolution, box_cfg.num_fc, box_cfg.fc_dim)
-        self.box_predictor = FastRCNNOutputLayers(self.box_head.output_dim, num_classes, box_cfg)
-        self.mask_on = cfg.mask_head.enabled
-        if self.mask_on:
-            self.build_mask_branch(input_shape)
+        self.matcher = Matcher([IOU_THRESHOLD], [0, 1], allow_low_quality_matches=False)
+        self.box_pooler = self._pooler(BOX_POOLER_RESOLUTION, strides)
+        self.box_head = FastRCNNFCHead(channels, BOX_POOLER_RESOLUTION, BOX_NUM_FC, cfg.box_head.fc_dim)
+        self.box_predictor = FastRCNNOutputLayers(self.box_head.output_dim, num_classes)
+        self.build_mask_branch(input_shape)
 
     def build_mask_branch(self, input_shape: Mapping[str, ShapeSpec]) -> None:
         """Mask R-CNN's: RoIAlign per FPN level and a conv head with a 2x deconv (28 x 28 masks)."""
         mask_cfg = self.cfg.mask_head
         shapes = [input_shape[name] for name in self.cfg.in_features]
         strides = [s.stride for s in shapes]
-        self.mask_pooler = self._pooler(mask_cfg.pooler_resolution, mask_cfg.pooler_sampling_ratio, strides)
+        self.mask_pooler = self._pooler(MASK_POOLER_RESOLUTION, strides)
         self.mask_head = MaskRCNNConvUpsampleHead(
             shapes[0].channels, self.num_classes, mask_cfg.num_conv, mask_cfg.conv_dim
         )
 
-    def _pooler(self, resolution: int, sampling_ratio: int, strides: list[int]) -> MultiScaleRoIAlign:
+    def _pooler(self, resolution: int, strides: list[int]) -> MultiScaleRoIAlign:
         cfg = self.cfg
         return MultiScaleRoIAlign(
-            cfg.in_features, strides, resolution, sampling_ratio, cfg.canonical_box_size, cfg.canonical_level
+            cfg.in_features, strides, resolution, POOLER_SAMPLING_RATIO, cfg.canonical_box_size, CANONICAL_LEVEL
         )
 
     def forward(
@@ -86,15 +93,11 @@ class StandardROIHeads(nn.Module):
                 raise ValueError("ROI heads need targets in training mode")
             proposals, num_foreground = self.label_and_sample_proposals(proposals, targets)
             losses = self.forward_box(features, proposals, num_foreground)
-            if self.mask_on:
-                # each image's foreground rows come first, so a slice selects them: no device read
-                foreground = [p[:n] for p, n in zip(proposals, num_foreground)]
-                losses.update(self.mask_losses(features, foreground, targets))
+            # each image's foreground rows come first, so a slice selects them: no device read
+            foreground = [p[:n] for p, n in zip(proposals, num_foreground)]
+            losses.update(self.mask_losses(features, foreground, targets))
             return proposals, losses
-        detections = self.forward_box(features, proposals)
-        if self.mask_on:
-            detections = self.forward_mask(features, detections)
-        return detections, {}
+        return self.forward_mask(features, self.forward_box(features, proposals)), {}
 
     @torch.no_grad()
     def label_and_sample_proposals(
@@ -106,10 +109,7 @@ class StandardROIHeads(nn.Module):
         ints). Background proposals get class ``num_classes`` and ``gt_index`` -1.
         """
         candidates = [
-            torch.cat([p.proposal_boxes, t.gt_boxes.to(p.proposal_boxes.dtype)])
-            if self.cfg.proposal_append_gt
-            else p.proposal_boxes
-            for p, t in zip(proposals, targets)
+            torch.cat([p.proposal_boxes, t.gt_boxes.to(p.proposal_boxes.dtype)]) for p, t in zip(proposals, targets)
         ]
         # every image matched at once: ground truth and candidates padded (padded gt rows match nothing)
         _, quality = padded_match_quality([t.gt_boxes for t in targets], stack_padded(candidates)[0])
@@ -118,9 +118,7 @@ class StandardROIHeads(nn.Module):
         counts = label_counts([labels for _, labels in matched])  # one host read for the batch's draws
         sampled, num_foreground = [], []
         for proposal, target, boxes, (matches, labels), count in zip(proposals, targets, candidates, matched, counts):
-            positive, negative = subsample_labels(
-                labels, self.cfg.batch_size_per_image, self.cfg.positive_fraction, count
-            )
+            positive, negative = subsample_labels(labels, self.cfg.batch_size_per_image, POSITIVE_FRACTION, count)
             keep = torch.cat([positive, negative])
             is_foreground = torch.arange(len(keep), device=keep.device) < len(positive)
             matched = matches[keep]
@@ -178,7 +176,7 @@ class StandardROIHeads(nn.Module):
             [p.proposal_boxes for p in foreground],
             resolution,
         )
-        return {"loss_mask": mask_rcnn_loss(mask_logits, classes, gt) * self.cfg.mask_head.loss_weight}
+        return {"loss_mask": mask_rcnn_loss(mask_logits, classes, gt)}
 
     def mask_probabilities(self, features: Mapping[str, Tensor], detections: list[Instances]) -> Tensor:
         """Box-relative foreground probabilities (R, M, M) of each detection's class, images concatenated."""
@@ -190,18 +188,19 @@ class StandardROIHeads(nn.Module):
 class PointRendROIHeads(StandardROIHeads):
     """Mask R-CNN's box branch with PointRend's mask branch (:mod:`.point_rend`, 224 x 224 masks)."""
 
+    settings = PointRendSettings()  # detectron2's pointrend_rcnn_R_50_FPN: what its model-zoo weights need
+
     def build_mask_branch(self, input_shape: Mapping[str, ShapeSpec]) -> None:
-        cfg = self.cfg.point_rend
-        if cfg.in_feature not in input_shape:
-            raise ValueError(f"PointRend reads {cfg.in_feature!r}, the backbone has {sorted(input_shape)}")
-        shape = input_shape[cfg.in_feature]
-        self.mask_head = PointRendMaskHead(shape.channels, shape.stride, self.num_classes, cfg)
+        settings = self.settings
+        if settings.in_feature not in input_shape:
+            raise ValueError(f"PointRend reads {settings.in_feature!r}, the backbone has {sorted(input_shape)}")
+        shape = input_shape[settings.in_feature]
+        self.mask_head = PointRendMaskHead(shape.channels, shape.stride, self.num_classes, settings)
 
     def mask_losses(
         self, features: Mapping[str, Tensor], foreground: list[Instances], targets: list[Instances]
     ) -> dict[str, Tensor]:
-        losses = self.mask_head.losses(features, foreground, targets)
-        return {name: value * self.cfg.mask_head.loss_weight for name, value in losses.items()}
+        return self.mask_head.losses(features, foreground, targets)
 
     def mask_probabilities(self, features: Mapping[str, Tensor], detections: list[Instances]) -> Tensor:
         classes = torch.cat([d.pred_classes for d in detections])

@@ -18,6 +18,14 @@ from .structures import ImageList, Instances
 
 Tensor = torch.Tensor
 
+# detectron2's MODEL.RPN defaults (detectron2/config/defaults.py), constants here: no recipe changes them
+IOU_THRESHOLDS = (0.3, 0.7)  # anchors below: background, above: foreground, between: ignored
+POSITIVE_FRACTION = 0.5  # at most this share of the sampled anchors is foreground
+BBOX_REG_WEIGHTS = (1.0, 1.0, 1.0, 1.0)  # (dx, dy, dw, dh) scales of the box deltas
+SMOOTH_L1_BETA = 0.0  # 0: the L1 loss
+MIN_BOX_SIZE = 0.0  # proposals narrower than this are dropped (MIN_SIZE)
+ANCHOR_OFFSET = 0.0  # anchor centres at the cells' top-left corners (ANCHOR_GENERATOR.OFFSET)
+
 
 class RPNHead(nn.Module):
     """Shared 3x3 conv, then per anchor an objectness logit and 4 box deltas, on every level."""
@@ -53,15 +61,15 @@ class RPN(nn.Module):
         if len({s.channels for s in shapes}) != 1:
             raise ValueError(f"RPN levels must share a channel count, got {shapes}")
         self.anchor_generator = AnchorGenerator(
-            cfg.anchors.sizes, cfg.anchors.aspect_ratios, [s.stride for s in shapes], cfg.anchors.offset
+            cfg.anchors.sizes, cfg.anchors.aspect_ratios, [s.stride for s in shapes], ANCHOR_OFFSET
         )
         num_anchors = set(self.anchor_generator.num_anchors_per_location)
         if len(num_anchors) != 1:
             raise ValueError("every RPN level needs the same number of anchors per location")
         self.head = RPNHead(shapes[0].channels, num_anchors.pop())
-        low, high = cfg.iou_thresholds
+        low, high = IOU_THRESHOLDS
         self.matcher = Matcher([low, high], [0, IGNORE, 1], allow_low_quality_matches=True)
-        self.box2box = Box2BoxTransform(cfg.bbox_reg_weights)
+        self.box2box = Box2BoxTransform(BBOX_REG_WEIGHTS)
 
     def forward(
         self, images: ImageList, features: Mapping[str, Tensor], targets: Optional[list[Instances]] = None
@@ -91,7 +99,7 @@ class RPN(nn.Module):
             matched_boxes = torch.gather(gt_boxes, 1, matches[..., None].expand(-1, -1, 4))
         else:
             matched_boxes = anchors.new_zeros(len(targets), *anchors.shape)
-        labels = subsample_labels_dense(labels, self.cfg.batch_size_per_image, self.cfg.positive_fraction)
+        labels = subsample_labels_dense(labels, self.cfg.batch_size_per_image, POSITIVE_FRACTION)
         return labels, matched_boxes
 
     def losses(self, anchors: Tensor, logits: Tensor, deltas: Tensor, targets: list[Instances]) -> dict[str, Tensor]:
@@ -104,11 +112,11 @@ class RPN(nn.Module):
         matched_boxes = torch.where(positive[..., None], matched_boxes, anchors)
         target_deltas = self.box2box.get_deltas(anchors.reshape(-1, 4), matched_boxes.reshape(-1, 4))
         normalizer = self.cfg.batch_size_per_image * len(targets)
-        loc = F.smooth_l1_loss(deltas.reshape(-1, 4), target_deltas, beta=self.cfg.smooth_l1_beta, reduction="none")
+        loc = F.smooth_l1_loss(deltas.reshape(-1, 4), target_deltas, beta=SMOOTH_L1_BETA, reduction="none")
         loss_loc = (loc.sum(dim=1) * positive.reshape(-1)).sum()
         cls = F.binary_cross_entropy_with_logits(logits, labels.clamp(min=0).to(logits.dtype), reduction="none")
         loss_cls = (cls * valid).sum()
-        weight = self.cfg.loss_weight / normalizer
+        weight = 1.0 / normalizer
         return {"loss_rpn_cls": loss_cls * weight, "loss_rpn_loc": loss_loc * weight}
 
     @torch.no_grad()
@@ -147,7 +155,7 @@ class RPN(nn.Module):
         image = torch.arange(num_images, device=boxes.device).repeat_interleave(
             per_image, output_size=num_images * per_image
         )
-        keep = nonempty_boxes(boxes, self.cfg.min_box_size) & torch.isfinite(scores) & torch.isfinite(boxes).all(1)
+        keep = nonempty_boxes(boxes, MIN_BOX_SIZE) & torch.isfinite(scores) & torch.isfinite(boxes).all(1)
         index = torch.nonzero(keep).squeeze(1)
         groups = image[index] * len(self.in_features) + levels.repeat(num_images)[index]
         kept = index[batched_nms(boxes[index], scores[index], groups, self.cfg.nms_thresh)]

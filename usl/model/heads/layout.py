@@ -15,6 +15,7 @@ Tensor = torch.Tensor
 
 # Numbers box_geometry appends to the pooled features: (x, y) of the two corner rays, log width, log height.
 BOX_GEOMETRY_DIM = 6
+POOLER_RESOLUTION = 7  # RoIAlign bins per side (detectron2's box pooler), then averaged to one 1 x C vector
 
 
 def box_geometry(boxes: Tensor, K: Tensor) -> Tensor:

@@ -34,6 +34,11 @@ from .vertex_features import roimap_features, single_level_pooler, vertalign_fea
 
 Tensor = torch.Tensor
 
+# The global stage's learning-rate factor: at the full rate its tanh can saturate within a few hundred
+# iterations (a tiny run lost one seed of two that way); at a tenth every run learned
+GLOBAL_STAGE_LR_FACTOR = 0.1
+VERTALIGN_RESOLUTION = 14  # RoIAlign size of the VertAlign ablation (Mesh R-CNN's ROI_MESH_HEAD.POOLER_RESOLUTION)
+
 
 @dataclass
 class ShapePrediction:
@@ -113,7 +118,7 @@ class ShapeHead(nn.Module):
         self.register_buffer("edge_faces", template.edge_faces, persistent=False)
         self.poolers = (
             nn.ModuleList(
-                single_level_pooler(name, stride, cfg.vertalign_resolution)
+                single_level_pooler(name, stride, VERTALIGN_RESOLUTION)
                 for name, stride in zip(cfg.features, self.strides)
             )
             if cfg.sampler == "vertalign"
