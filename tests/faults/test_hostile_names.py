@@ -7,7 +7,7 @@ anywhere else under the test's folder but the inputs.
 
 from __future__ import annotations
 
-import csv
+import sys
 import json
 from dataclasses import dataclass
 from pathlib import Path
@@ -39,10 +39,10 @@ HOSTILE = {
 
 
 def write_csv(path: Path, columns: tuple[str, ...], rows: list[dict[str, str]]) -> Path:
-    with open(path, "w", newline="") as f:
-        writer = csv.DictWriter(f, columns)
-        writer.writeheader()
-        writer.writerows(rows)
+    # by hand, not csv.writer: Python 3.10's writer refuses a NUL (3.11 and later quote it)
+    quote = lambda value: '"' + value.replace('"', '""') + '"'  # noqa: E731
+    lines = [",".join(columns)] + [",".join(quote(row.get(c, "")) for c in columns) for row in rows]
+    path.write_text("\r\n".join(lines) + "\r\n", newline="")
     return path
 
 
@@ -123,7 +123,10 @@ def test_a_hostile_name_in_an_input_file_is_refused_before_anything_is_written(
     fault_tally.tried += 1
     assert code == 2
     message = one_line_error(capsys.readouterr().err)
-    assert f"{source}" in message and f"{CONVERTERS[converter].what} {name!r}" in message, message
+    named = f"{CONVERTERS[converter].what} {name!r}" in message
+    if kind == "NUL" and "hypersim" in converter and sys.version_info < (3, 11):
+        named = named or "(line contains NUL)" in message  # Python 3.10's csv reader refuses the line itself
+    assert f"{source}" in message and named, message
     assert not (root / "out").exists()
     assert inputs == sorted(p for p in tmp_path.rglob("*") if p.is_file()) and all(root in p.parents for p in inputs)
     fault_tally.survived += 1
