@@ -1,6 +1,6 @@
 """Benchmark of ``usl-convert-captures --poses sfm``: time and accuracy of COLMAP's SfM (pycolmap, CPU).
 
-Renders the test capture (``pipelines.captures.synthetic``: a table and a chair along a 100-degree
+Renders the test capture (``tests.pipelines.captures.synthetic_capture``: a table and a chair along a 100-degree
 arc, noise-textured, with depth and detections), leaves out its poses, converts it with
 ``--poses sfm`` and reports wall time and CPU time (this process and its threads: pycolmap runs
 in-process) of the whole conversion, the fraction of frames SfM registered, the worst relative
@@ -23,9 +23,11 @@ from pathlib import Path
 
 import numpy as np
 
-from pipelines.captures.cli import main as convert
-from pipelines.captures.synthetic import render_capture, write_detections, write_transforms
-from usl.records import RecordsDataset, load_manifest
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))  # the checkout: its tests' rendered capture
+
+from pipelines.captures.cli import main as convert  # noqa: E402
+from tests.pipelines.captures.synthetic_capture import render_capture, write_detections, write_transforms  # noqa: E402
+from usl.records import RecordsDataset, load_manifest  # noqa: E402
 
 
 def cpu_seconds() -> float:

@@ -8,7 +8,12 @@ from types import SimpleNamespace
 
 import pytest
 
-from pipelines.captures.synthetic import render_capture, write_colmap_text, write_detections, write_transforms
+from tests.pipelines.captures.synthetic_capture import (
+    render_capture,
+    write_colmap_text,
+    write_detections,
+    write_transforms,
+)
 
 UNIT = 0.37  # metres per unit of the COLMAP models' world: poses are not metric there
 

@@ -11,7 +11,7 @@ import numpy as np
 from pycocotools import mask as mask_utils
 
 from pipelines.captures.cli import main
-from pipelines.captures.synthetic import rle
+from tests.pipelines.captures.synthetic_capture import rle
 from usl.records import decode_depth, decode_image, load_manifest
 
 from .test_captures_convert import check_objects, read_frames

@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 
 from pipelines.captures.cli import main
-from pipelines.captures.synthetic import rle
+from tests.pipelines.captures.synthetic_capture import rle
 from usl.records import decode_image, load_manifest
 
 from .test_captures_convert import check_objects, read_frames

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from pipelines.captures.cli import main
-from pipelines.captures.synthetic import render_capture, write_detections, write_transforms
+from tests.pipelines.captures.synthetic_capture import render_capture, write_detections, write_transforms
 from usl.records import load_manifest
 from usl.records.validate import validate_dataset
 

@@ -21,7 +21,8 @@ import trimesh
 from pycocotools import mask as mask_utils
 from scipy.spatial.transform import Rotation
 
-from .posed import OPENGL_TO_OPENCV
+from pipelines.captures.posed import OPENGL_TO_OPENCV
+from pipelines.scene_shapes.render import renderer_for
 
 CHAIR_COCO, TABLE_COCO, PERSON_COCO = 62, 67, 1
 # (name, COCO id, boxes as (centre xyz, size xyz) in metres, world y up)
@@ -132,25 +133,24 @@ def render_capture(num_frames: int = 24, width: int = 640, height: int = 480, se
     f = 0.8 * width
     K = np.array([[f, 0.0, width / 2], [0.0, f, height / 2], [0.0, 0.0, 1.0]])
     camera = scene.add(pyrender.IntrinsicsCamera(f, f, width / 2, height / 2, znear=0.05, zfar=20.0))
-    renderer = pyrender.OffscreenRenderer(width, height)
+    # the process-wide cached renderer: deleting a pyrender EGL renderer terminates the EGL display,
+    # and with it the contexts of every other renderer in the process (later tests would fail)
+    renderer = renderer_for(width, height)
     out = RenderedCapture(width, height, K)
     target = np.array([0.35, 0.5, 0.2])
     colours = {name: np.array([60 * (k + 1), 0, 0], np.uint8) for k, name in enumerate(nodes)}
-    try:
-        for angle in np.radians(np.linspace(-50.0, 50.0, num_frames)):
-            eye = target + np.array([2.6 * np.sin(angle), 0.9, 2.6 * np.cos(angle)])
-            pose_gl = look_at(eye, target)
-            scene.set_pose(camera, pose_gl)
-            rgb, depth = renderer.render(scene, flags=pyrender.RenderFlags.FLAT)
-            seg, _ = renderer.render(
-                scene, flags=pyrender.RenderFlags.SEG, seg_node_map={n: colours[k] for k, n in nodes.items()}
-            )
-            out.cam_to_world.append(pose_gl @ OPENGL_TO_OPENCV)
-            out.images.append(np.ascontiguousarray(rgb[..., :3]))
-            out.depth.append(depth.astype(np.float64))
-            out.masks.append({name: seg[..., 0] == colours[name][0] for name in nodes})
-    finally:
-        renderer.delete()
+    for angle in np.radians(np.linspace(-50.0, 50.0, num_frames)):
+        eye = target + np.array([2.6 * np.sin(angle), 0.9, 2.6 * np.cos(angle)])
+        pose_gl = look_at(eye, target)
+        scene.set_pose(camera, pose_gl)
+        rgb, depth = renderer.render(scene, flags=pyrender.RenderFlags.FLAT)
+        seg, _ = renderer.render(
+            scene, flags=pyrender.RenderFlags.SEG, seg_node_map={n: colours[k] for k, n in nodes.items()}
+        )
+        out.cam_to_world.append(pose_gl @ OPENGL_TO_OPENCV)
+        out.images.append(np.ascontiguousarray(rgb[..., :3]))
+        out.depth.append(depth.astype(np.float64))
+        out.masks.append({name: seg[..., 0] == colours[name][0] for name in nodes})
     return out
 
 
