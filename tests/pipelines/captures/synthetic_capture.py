@@ -10,6 +10,7 @@ model (text, world scaled to an arbitrary unit, sparse points sampled from the d
 
 from __future__ import annotations
 
+import ctypes
 import json
 import os
 from dataclasses import dataclass, field
@@ -117,9 +118,26 @@ class RenderedCapture:
         return [f"frame_{k:05d}.png" for k in range(len(self.images))]
 
 
+def _upload_textures_on_any_python(pyrender) -> None:
+    """pyrender pins PyOpenGL 3.1.0, whose ``glGenTextures(n)`` passes a ``byref`` that Python 3.13's
+    ctypes no longer converts (``No array-type handler for type _ctypes.type``): the one GL call
+    pyrender makes only for textures. Generate the names through the raw entry point with a ctypes
+    array, which every PyOpenGL and Python accept. Only this fixture draws textures."""
+    from OpenGL.raw.GL.VERSION.GL_1_1 import glGenTextures
+
+    def gen_textures(count: int):
+        names = (ctypes.c_uint * count)()
+        glGenTextures(count, names)
+        return names[0] if count == 1 else list(names)
+
+    pyrender.texture.glGenTextures = gen_textures
+
+
 def render_capture(num_frames: int = 24, width: int = 640, height: int = 480, seed: int = 0) -> RenderedCapture:
     os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
     import pyrender
+
+    _upload_textures_on_any_python(pyrender)
 
     rng = np.random.default_rng(seed)
     scene = pyrender.Scene(ambient_light=np.ones(3), bg_color=np.zeros(4))
