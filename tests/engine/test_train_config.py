@@ -74,8 +74,7 @@ def test_tiny_recipe_uses_the_detectors_tiny_network():
     tiny = load_config("tiny")
     assert to_dict(tiny.model.detector) == to_dict(DetectorConfig.tiny())
     assert tiny.model.shape.ico_level == 2 and tiny.optim.name == "adam"
-    # the FPN shape head of its base (scene_shapes_fpn), not Scene-Shapes' Mesh R-CNN head, also
-    # sampling the image itself
+    # the FPN shape head of the defaults, not Scene-Shapes' Mesh R-CNN head, also sampling the image itself
     assert tiny.model.shape.features == ("p2", "image") and not tiny.model.shape.pass_features
     assert tiny.model.shape.bottleneck_init == "torch" and tiny.model.layout.in_features == ("p2",)
 
@@ -225,10 +224,15 @@ def test_saved_config_reloads_identically(tmp_path):
 
 
 def test_paper_recipes_keep_the_papers_loss_and_init_while_tiny_documents_its_changes():
-    """The CPU-scale findings are options: only `tiny` turns them on."""
-    for name in ("scene_shapes", "hypersim", "scannet"):
+    """The findings that hold at any scale are the defaults, which the paper's recipes set back to the
+    paper's values; the CPU-scale ones are options that only `tiny` turns on."""
+    defaults = Config()
+    assert not defaults.loss.gate_input_view and defaults.loss.ignore_occluders and defaults.data.flip_prob == 0.5
+    assert defaults.model.layout.box_geometry and defaults.loss.render.blur_radius == 9.21e-3
+    for name in ("scene_shapes", "scene_shapes_fpn", "hypersim", "scannet"):
         cfg = load_config(name)
-        assert cfg.loss.gate_input_view and not cfg.loss.ignore_occluders, name
+        assert cfg.loss.gate_input_view and not cfg.loss.ignore_occluders and cfg.data.flip_prob == 0, name
+        assert not cfg.model.layout.box_geometry and cfg.loss.render.blur_radius == cfg.loss.render.sigma == 1e-3
         assert cfg.loss.dist_schedule.iters == () and cfg.loss.dist_schedule(10**5) == 1.0, name
         assert cfg.model.shape.graph_conv_init == "normal" and cfg.loss.iou_threshold == 0.5, name
         assert cfg.model.shape.global_stage == 0 and cfg.optim.clip_grad_norm != 100.0, name
@@ -239,6 +243,25 @@ def test_paper_recipes_keep_the_papers_loss_and_init_while_tiny_documents_its_ch
     assert tiny.model.shape.global_stage > 0 and tiny.optim.clip_grad_norm == 100.0
     assert tiny.loss.weights.normal == 0.1 and tiny.loss.weights.laplacian == 0.0
     assert tiny.loss.dist_schedule(0) == 1.0 and tiny.loss.dist_schedule(tiny.optim.max_iter) < 1.0
+
+
+def _recipe_keys(name: str) -> list[str]:
+    """The dotted keys a recipe file sets itself (not those of its ``_base_``)."""
+
+    def leaves(node: dict, prefix: str) -> list[str]:
+        return [
+            key
+            for name, value in node.items()
+            for key in (leaves(value, f"{prefix}{name}.") if isinstance(value, dict) and value else [prefix + name])
+        ]
+
+    return [key for key in leaves(yaml.safe_load(resolve_config_path(name).read_text()), "") if key != "_base_"]
+
+
+def test_tiny_sets_few_keys():
+    """Each key tiny sets is one more departure a reader must follow: what helps every recipe is the
+    default, so tiny sets only what a short CPU run needs."""
+    assert len(_recipe_keys("tiny")) <= 25
 
 
 def test_tiny_long_is_tiny_with_its_schedule_scaled_to_the_longer_run():

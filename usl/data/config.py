@@ -18,9 +18,9 @@ class DataConfig:
     input_view_stride: int = 1  # every k-th view of a scene is an input view (video data is redundant)
     max_size: int = 0  # resize so the longer image side is at most this; 0 keeps the stored size
     max_objects: int = 0  # objects of the input view in L_3D (a random subset); 0 keeps all
-    # Probability of mirroring a training sample left-right: all its views, as one reflection of
-    # the world (usl.data.mirror), so the multi-view geometry stays exact. 0: never (the paper).
-    flip_prob: float = 0.0
+    # Probability of mirroring a training sample left-right, all its views as one reflection of the world
+    # (usl.data.mirror, the geometry stays exact): more shapes from the same models. 0: never (the paper)
+    flip_prob: float = 0.5
     num_workers: int = 2  # data loader processes (0: load in the training process)
     verify: str = "size"  # shard checks on open: "size" (a stat) or "sha256" (reads each shard once more)
 

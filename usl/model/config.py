@@ -34,8 +34,8 @@ class LayoutHeadConfig:
     num_fc: int = 4  # fully connected layers before the per-category z~, rho~ sigmoids
     fc_dim: int = 256  # width of each of them
     # Also read the 2D box as camera rays (its corners through K^-1, log width and height): RoIAlign
-    # loses the apparent size that tells depth apart. Not in the paper.
-    box_geometry: bool = False
+    # loses the apparent size that tells depth apart. False: RoI features only (the paper)
+    box_geometry: bool = True
 
 
 @dataclass
@@ -99,13 +99,16 @@ _SOFT = SoftRasterSettings()
 
 @dataclass
 class RenderConfig:
-    """Dynamic soft rendering for l_xent; defaults are ``usl.render.SoftRasterSettings``'s."""
+    """Dynamic soft rendering for l_xent. ``sigma`` and ``faces_per_pixel`` default to
+    ``usl.render.SoftRasterSettings``'s (the paper's); ``blur_radius`` to PyTorch3D's usual reach."""
 
     padding: ClassVar[float] = 0.05  # window margin, as a fraction of its longer side
 
     resolution: int = 72  # side of every dynamic-rendering window (paper: 128 Scene-Shapes, 72 others)
     sigma: float = _SOFT.sigma  # sharpness of the soft silhouette (SoftRas sigma)
-    blur_radius: float = _SOFT.blur_radius  # faces farther than this from a pixel do not touch it
+    # Faces farther than this from a pixel do not touch it: ln(1/1e-4 - 1) sigma, PyTorch3D's usual. At the
+    # paper's 1e-3 (= sigma) l_xent shrinks a mesh lying inside its silhouette (too little reach)
+    blur_radius: float = 9.21e-3
     # the nearest faces by depth blended per pixel; null blends every face within the blur radius
     # (SoftRas), which skips the per-pixel depth sort
     faces_per_pixel: int | None = _SOFT.faces_per_pixel
@@ -130,10 +133,10 @@ class LossConfig:
     xent_gate: str = "iou"
     # False: no gate in the input view, where the 2D box fixes the silhouette whatever z and rho are,
     # so thin objects get a shape signal from the first step. True: the paper's gate in every view
-    gate_input_view: bool = True
+    gate_input_view: bool = False
     # True masks show visible parts only: True leaves pixels another object's true mask covers out of
     # l_xent, instead of carving away what an occluder hides. False: the paper's
-    ignore_occluders: bool = False
+    ignore_occluders: bool = True
     # "2d": the paper's multi-view silhouette loss L_3D | "3d": Mesh R-CNN's losses against the true
     # meshes (Table 1's "Mesh R-CNN (3D sup.)" upper bound; Scene-Shapes only)
     supervision: str = "2d"
