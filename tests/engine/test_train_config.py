@@ -1,5 +1,6 @@
 """Recipes, YAML loading, key=value overrides (usl.config) and usl-train's config command line."""
 
+import copy
 import dataclasses
 import inspect
 import itertools
@@ -11,6 +12,7 @@ import pytest
 import yaml
 
 from usl.config import (
+    CONFIG_DIR,
     Config,
     ConfigError,
     config_from_dict,
@@ -26,6 +28,8 @@ from usl.config_docs import field_docs, iter_keys
 from usl.cli.train import main as train_main
 from usl.cli.train import parse_args
 from usl.model.detector import DetectorConfig
+
+RECIPE_NAMES = sorted(path.stem for path in CONFIG_DIR.glob("*.yaml"))
 
 
 def test_recipes_follow_the_papers_recipe_table():
@@ -264,6 +268,32 @@ def test_tiny_sets_few_keys():
     assert len(_recipe_keys("tiny")) <= 25
 
 
+@pytest.mark.parametrize("name", RECIPE_NAMES)
+def test_every_key_a_recipe_sets_changes_its_config(name, tmp_path):
+    """A recipe holds only what differs from the defaults and its ``_base_``: a key that repeats them
+    is one more line to read, and hides which values the recipe chose."""
+    path = resolve_config_path(name)
+    own = yaml.safe_load(path.read_text())
+    if "_base_" in own:
+        own["_base_"] = str(path.parent / own["_base_"])
+    for key in _recipe_keys(name):
+        *parents, leaf = key.split(".")
+        trimmed = copy.deepcopy(own)
+        nodes = [trimmed]
+        for parent in parents:
+            nodes.append(nodes[-1][parent])
+        del nodes[-1][leaf]
+        for node, parent in reversed(list(zip(nodes, parents))):  # an empty mapping would clear the key
+            if not node[parent]:
+                del node[parent]
+        (tmp_path / "trimmed.yaml").write_text(yaml.safe_dump(trimmed))
+        try:
+            trimmed_config = load_config(tmp_path / "trimmed.yaml", [f"name={name}"])
+        except ConfigError:  # needed with another key it sets (a schedule's knots and values)
+            continue
+        assert trimmed_config != load_config(name), key
+
+
 def test_tiny_long_is_tiny_with_its_schedule_scaled_to_the_longer_run():
     """The two recipes must not drift apart: only the run length and what is placed by it differ."""
     tiny, long = load_config("tiny"), load_config("tiny_long")
@@ -285,7 +315,6 @@ def test_tiny_long_is_tiny_with_its_schedule_scaled_to_the_longer_run():
 
 def test_help_lists_every_built_in_recipe():
     from usl.cli.train import RECIPES, parser
-    from usl.config import CONFIG_DIR
 
     assert RECIPES == sorted(p.stem for p in CONFIG_DIR.glob("*.yaml")) and len(RECIPES) >= 6
     assert all(name in " ".join(parser().format_help().split()) for name in RECIPES)
