@@ -12,7 +12,8 @@ from usl.render import rasterize_hard
 
 def _dataset(root, **overrides):
     records = RecordsDataset(root, "train")
-    cfg = DataConfig(root=str(root), num_views=4, num_workers=0, **overrides)
+    # unmirrored, so each sample can be checked against the records as stored
+    cfg = DataConfig(root=str(root), num_views=4, num_workers=0, **{"flip_prob": 0.0, **overrides})
     return MultiViewDataset(records, cfg, CategoryIndex(records.categories), seed=3), records
 
 

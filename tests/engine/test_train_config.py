@@ -1,5 +1,6 @@
 """Recipes, YAML loading, key=value overrides (usl.config) and usl-train's config command line."""
 
+import copy
 import dataclasses
 import inspect
 import itertools
@@ -11,6 +12,7 @@ import pytest
 import yaml
 
 from usl.config import (
+    CONFIG_DIR,
     Config,
     ConfigError,
     config_from_dict,
@@ -26,6 +28,8 @@ from usl.config_docs import field_docs, iter_keys
 from usl.cli.train import main as train_main
 from usl.cli.train import parse_args
 from usl.model.detector import DetectorConfig
+
+RECIPE_NAMES = sorted(path.stem for path in CONFIG_DIR.glob("*.yaml"))
 
 
 def test_recipes_follow_the_papers_recipe_table():
@@ -74,8 +78,7 @@ def test_tiny_recipe_uses_the_detectors_tiny_network():
     tiny = load_config("tiny")
     assert to_dict(tiny.model.detector) == to_dict(DetectorConfig.tiny())
     assert tiny.model.shape.ico_level == 2 and tiny.optim.name == "adam"
-    # the FPN shape head of its base (scene_shapes_fpn), not Scene-Shapes' Mesh R-CNN head, also
-    # sampling the image itself
+    # the FPN shape head of the defaults, not Scene-Shapes' Mesh R-CNN head, also sampling the image itself
     assert tiny.model.shape.features == ("p2", "image") and not tiny.model.shape.pass_features
     assert tiny.model.shape.bottleneck_init == "torch" and tiny.model.layout.in_features == ("p2",)
 
@@ -188,7 +191,7 @@ def test_field_docs_come_from_comments_beside_or_above_the_field():
     docs = field_docs(ModelConfig)
     assert docs["detector_preset"].startswith("Defaults the ``detector`` keys start from")  # block above
     assert docs["categories"].startswith("category names; empty: the records manifest's")
-    assert field_docs(DataConfig)["num_views"] == "M: the input view plus M - 1 other views"  # beside
+    assert field_docs(DataConfig)["num_views"].startswith("M: the input view plus M - 1 other views")  # beside
 
 
 def test_resume_never_swallows_an_override(tmp_path):
@@ -225,10 +228,15 @@ def test_saved_config_reloads_identically(tmp_path):
 
 
 def test_paper_recipes_keep_the_papers_loss_and_init_while_tiny_documents_its_changes():
-    """The CPU-scale findings are options: only `tiny` turns them on."""
-    for name in ("scene_shapes", "hypersim", "scannet"):
+    """The findings that hold at any scale are the defaults, which the paper's recipes set back to the
+    paper's values; the CPU-scale ones are options that only `tiny` turns on."""
+    defaults = Config()
+    assert not defaults.loss.gate_input_view and defaults.loss.ignore_occluders and defaults.data.flip_prob == 0.5
+    assert defaults.model.layout.box_geometry and defaults.loss.render.blur_radius == 9.21e-3
+    for name in ("scene_shapes", "scene_shapes_fpn", "hypersim", "scannet"):
         cfg = load_config(name)
-        assert cfg.loss.gate_input_view and not cfg.loss.ignore_occluders, name
+        assert cfg.loss.gate_input_view and not cfg.loss.ignore_occluders and cfg.data.flip_prob == 0, name
+        assert not cfg.model.layout.box_geometry and cfg.loss.render.blur_radius == cfg.loss.render.sigma == 1e-3
         assert cfg.loss.dist_schedule.iters == () and cfg.loss.dist_schedule(10**5) == 1.0, name
         assert cfg.model.shape.graph_conv_init == "normal" and cfg.loss.iou_threshold == 0.5, name
         assert cfg.model.shape.global_stage == 0 and cfg.optim.clip_grad_norm != 100.0, name
@@ -239,6 +247,51 @@ def test_paper_recipes_keep_the_papers_loss_and_init_while_tiny_documents_its_ch
     assert tiny.model.shape.global_stage > 0 and tiny.optim.clip_grad_norm == 100.0
     assert tiny.loss.weights.normal == 0.1 and tiny.loss.weights.laplacian == 0.0
     assert tiny.loss.dist_schedule(0) == 1.0 and tiny.loss.dist_schedule(tiny.optim.max_iter) < 1.0
+
+
+def _recipe_keys(name: str) -> list[str]:
+    """The dotted keys a recipe file sets itself (not those of its ``_base_``)."""
+
+    def leaves(node: dict, prefix: str) -> list[str]:
+        return [
+            key
+            for name, value in node.items()
+            for key in (leaves(value, f"{prefix}{name}.") if isinstance(value, dict) and value else [prefix + name])
+        ]
+
+    return [key for key in leaves(yaml.safe_load(resolve_config_path(name).read_text()), "") if key != "_base_"]
+
+
+def test_tiny_sets_few_keys():
+    """Each key tiny sets is one more departure a reader must follow: what helps every recipe is the
+    default, so tiny sets only what a short CPU run needs."""
+    assert len(_recipe_keys("tiny")) <= 25
+
+
+@pytest.mark.parametrize("name", RECIPE_NAMES)
+def test_every_key_a_recipe_sets_changes_its_config(name, tmp_path):
+    """A recipe holds only what differs from the defaults and its ``_base_``: a key that repeats them
+    is one more line to read, and hides which values the recipe chose."""
+    path = resolve_config_path(name)
+    own = yaml.safe_load(path.read_text())
+    if "_base_" in own:
+        own["_base_"] = str(path.parent / own["_base_"])
+    for key in _recipe_keys(name):
+        *parents, leaf = key.split(".")
+        trimmed = copy.deepcopy(own)
+        nodes = [trimmed]
+        for parent in parents:
+            nodes.append(nodes[-1][parent])
+        del nodes[-1][leaf]
+        for node, parent in reversed(list(zip(nodes, parents))):  # an empty mapping would clear the key
+            if not node[parent]:
+                del node[parent]
+        (tmp_path / "trimmed.yaml").write_text(yaml.safe_dump(trimmed))
+        try:
+            trimmed_config = load_config(tmp_path / "trimmed.yaml", [f"name={name}"])
+        except ConfigError:  # needed with another key it sets (a schedule's knots and values)
+            continue
+        assert trimmed_config != load_config(name), key
 
 
 def test_tiny_long_is_tiny_with_its_schedule_scaled_to_the_longer_run():
@@ -262,7 +315,6 @@ def test_tiny_long_is_tiny_with_its_schedule_scaled_to_the_longer_run():
 
 def test_help_lists_every_built_in_recipe():
     from usl.cli.train import RECIPES, parser
-    from usl.config import CONFIG_DIR
 
     assert RECIPES == sorted(p.stem for p in CONFIG_DIR.glob("*.yaml")) and len(RECIPES) >= 6
     assert all(name in " ".join(parser().format_help().split()) for name in RECIPES)

@@ -103,7 +103,7 @@ def reader(root, split="train", verify="size"):
 
 def train_sample(root, index=0):
     records = RecordsDataset(root, "train")
-    return MultiViewDataset(records, DataConfig(num_views=2), CategoryIndex(records.categories))[index]
+    return MultiViewDataset(records, DataConfig(num_views=2, flip_prob=0.0), CategoryIndex(records.categories))[index]
 
 
 def fake_build(out):

@@ -13,16 +13,16 @@ class DataConfig:
     root: str = ""  # records folder (docs/design.md §3)
     train_split: str = "train"  # split the model trains on
     val_split: str = "val"  # split of the periodic validation (``val.*``) and of usl-eval's default
-    num_views: int = 5  # M: the input view plus M - 1 other views
+    num_views: int = 5  # M: the input view plus M - 1 other views; more: more supervision per object, slower
     view_sampling: str = "uniform"  # "uniform" | "time_distance" (p ∝ |view_id difference|, video data)
     input_view_stride: int = 1  # every k-th view of a scene is an input view (video data is redundant)
-    max_size: int = 0  # resize so the longer image side is at most this; 0 keeps the stored size
-    max_objects: int = 0  # objects of the input view in L_3D (a random subset); 0 keeps all
-    # Probability of mirroring a training sample left-right: all its views, as one reflection of
-    # the world (usl.data.mirror), so the multi-view geometry stays exact. 0: never (the paper).
-    flip_prob: float = 0.0
-    num_workers: int = 2  # data loader processes (0: load in the training process)
-    verify: str = "size"  # shard checks on open: "size" (a stat) or "sha256" (reads each shard once more)
+    max_size: int = 0  # resize so the longer image side is at most this (smaller: faster, coarser); 0: as stored
+    max_objects: int = 0  # objects of the input view in L_3D (a random subset), to bound crowded scenes; 0 keeps all
+    # Probability of mirroring a training sample left-right, all its views as one reflection of the world
+    # (usl.data.mirror, the geometry stays exact): more shapes from the same models. 0: never (the paper)
+    flip_prob: float = 0.5
+    num_workers: int = 2  # data loader processes, so loading overlaps training (0: in the training process)
+    verify: str = "size"  # shard checks on open: "size" (a stat) | "sha256" (reads each shard again, to catch damage)
 
     def __post_init__(self) -> None:
         check_choice("data.view_sampling", self.view_sampling, ("uniform", "time_distance"))

@@ -29,7 +29,7 @@ class LossWeights:
     weights (its Appendix C); the recipes (``usl/configs``) set what differs from them."""
 
     mu_2d: float = 1.0  # Mask R-CNN detection losses (summed); 0 leaves the RPN and RoI heads untrained
-    mu_3d: float = 1.0  # multi-view silhouette loss L_3D
+    mu_3d: float = 1.0  # multi-view silhouette loss L_3D, against the detection losses
     edge: float = 0.0  # L_edge, Mesh R-CNN's edge length (paper: 0.1 on Scene-Shapes)
     offset_l2: float = 0.05  # ½‖dV‖² on the pre-tanh offsets (paper: 0.05 on Hypersim and ScanNet)
     laplacian: float = 0.0  # uniform Laplacian smoothing (paper: 0.1 on ScanNet)

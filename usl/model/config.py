@@ -31,23 +31,23 @@ class LayoutRange:
 @dataclass
 class LayoutHeadConfig:
     in_features: tuple[str, ...] = ("p2",)  # backbone maps RoIAligned per box (paper: FPN p2)
-    num_fc: int = 4  # fully connected layers before the per-category z~, rho~ sigmoids
-    fc_dim: int = 256  # width of each of them
+    num_fc: int = 4  # fully connected layers before the per-category z~, rho~ sigmoids (fewer: faster)
+    fc_dim: int = 256  # width of each of them (smaller: faster)
     # Also read the 2D box as camera rays (its corners through K^-1, log width and height): RoIAlign
-    # loses the apparent size that tells depth apart. Not in the paper.
-    box_geometry: bool = False
+    # loses the apparent size that tells depth apart. False: RoI features only (the paper)
+    box_geometry: bool = True
 
 
 @dataclass
 class ShapeHeadConfig:
     ico_level: int = 3  # subdivisions of the initial ico-sphere (2: 162 vertices, 3: 642, 4: 2562)
-    num_stages: int = 3  # refinement stages S, each {vertex features, graph convs, offsets}
-    num_graph_convs: int = 3  # graph convolutions per stage
-    hidden_dim: int = 256  # width of the bottleneck and the graph convolutions
+    num_stages: int = 3  # refinement stages S, each {vertex features, graph convs, offsets}; more: finer, slower
+    num_graph_convs: int = 3  # graph convolutions per stage (more: a wider reach on the mesh, slower)
+    hidden_dim: int = 256  # width of the bottleneck and the graph convolutions (smaller: faster)
     # Maps sampled at each vertex and concatenated: [p2] (FPN), [res2, res3, res4, res5] (plain R50),
     # "image" the normalised input image (stride 1): colour that from-scratch features blur
     features: tuple[str, ...] = ("p2",)
-    pass_features: bool = False  # each stage's last GraphConv output goes on into the next (Mesh R-CNN)
+    pass_features: bool = False  # each stage's last GraphConv output goes into the next (Mesh R-CNN's, not the paper's)
     sampler: str = "roimap"  # "roimap" (paper) | "vertalign" (Mesh R-CNN's: Table 1's "w/o RoIMap")
     # GraphConv init: "normal" N(0, 0.01²) (Mesh R-CNN's; passes ~1% of the image features on after
     # three convs) | "kaiming" (He init: the features reach the offsets, for short runs)
@@ -99,13 +99,16 @@ _SOFT = SoftRasterSettings()
 
 @dataclass
 class RenderConfig:
-    """Dynamic soft rendering for l_xent; defaults are ``usl.render.SoftRasterSettings``'s."""
+    """Dynamic soft rendering for l_xent. ``sigma`` and ``faces_per_pixel`` default to
+    ``usl.render.SoftRasterSettings``'s (the paper's); ``blur_radius`` to PyTorch3D's usual reach."""
 
     padding: ClassVar[float] = 0.05  # window margin, as a fraction of its longer side
 
     resolution: int = 72  # side of every dynamic-rendering window (paper: 128 Scene-Shapes, 72 others)
-    sigma: float = _SOFT.sigma  # sharpness of the soft silhouette (SoftRas sigma)
-    blur_radius: float = _SOFT.blur_radius  # faces farther than this from a pixel do not touch it
+    sigma: float = _SOFT.sigma  # sharpness of the soft silhouette (SoftRas sigma): smaller, sharper edges
+    # Faces farther than this from a pixel do not touch it: ln(1/1e-4 - 1) sigma, PyTorch3D's usual. At the
+    # paper's 1e-3 (= sigma) l_xent shrinks a mesh lying inside its silhouette (too little reach)
+    blur_radius: float = 9.21e-3
     # the nearest faces by depth blended per pixel; null blends every face within the blur radius
     # (SoftRas), which skips the per-pixel depth sort
     faces_per_pixel: int | None = _SOFT.faces_per_pixel
@@ -124,16 +127,16 @@ class LossConfig:
     # Factor on dist_scale by iteration (empty: 1, the paper's): l_dist may place the layout first, then
     # hand the shape over to l_xent, e.g. {iters: [300, 900], values: [1.0, 0.25]}
     dist_schedule: PiecewiseLinear = field(default_factory=PiecewiseLinear)
-    mesh_points: int = 1000  # points sampled on each mesh surface and in each true silhouette for l_dist
+    mesh_points: int = 1000  # points sampled on each mesh and each true silhouette for l_dist (fewer: faster, noisier)
     iou_threshold: float = 0.5  # the IoU gate of Eq. 4: l_xent applies to an (object, view) above it (paper: 0.5)
     # Pairs l_xent applies to: "iou" (the gate of Eq. 4) | "all" (no gate: Table 1's ablation of it)
     xent_gate: str = "iou"
     # False: no gate in the input view, where the 2D box fixes the silhouette whatever z and rho are,
     # so thin objects get a shape signal from the first step. True: the paper's gate in every view
-    gate_input_view: bool = True
+    gate_input_view: bool = False
     # True masks show visible parts only: True leaves pixels another object's true mask covers out of
     # l_xent, instead of carving away what an occluder hides. False: the paper's
-    ignore_occluders: bool = False
+    ignore_occluders: bool = True
     # "2d": the paper's multi-view silhouette loss L_3D | "3d": Mesh R-CNN's losses against the true
     # meshes (Table 1's "Mesh R-CNN (3D sup.)" upper bound; Scene-Shapes only)
     supervision: str = "2d"

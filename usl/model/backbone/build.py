@@ -26,9 +26,9 @@ class ShapeSpec:
 @dataclass
 class ResNetConfig:
     depth: int = 50  # 18, 34 (basic blocks), 50, 101 (bottlenecks): as the init weights were trained
-    base_channels: int = 64  # width of the stem; stages have 1x, 2x, 4x, 8x (x4 for bottlenecks)
-    norm: str = "FrozenBN"  # "BN" or "FrozenBN"
-    freeze_at: int = 2  # 0: train all; 1: freeze stem; k: also freeze the first k-1 stages
+    base_channels: int = 64  # width of the stem; stages have 1x, 2x, 4x, 8x (x4 for bottlenecks); smaller: faster
+    norm: str = "FrozenBN"  # "BN" (batch statistics: from scratch) | "FrozenBN" (pretrained, small batches)
+    freeze_at: int = 2  # 0: train all; 1: freeze stem; k: also the first k-1 stages (keeps pretrained ones, faster)
     # Bottleneck stride on the first 1x1 conv (original MSRA ResNet, detectron2 weights) instead of
     # the 3x3 (v1.5, torchvision). None: as the model's init weights need (ModelConfig resolves it).
     stride_in_1x1: Optional[bool] = None
@@ -36,12 +36,12 @@ class ResNetConfig:
 
 @dataclass
 class FPNConfig:
-    out_channels: int = 256  # channels of every FPN level (p2..p6, p6 a stride-2 max-pool of p5)
+    out_channels: int = 256  # channels of every FPN level (p2..p6, p6 a stride-2 max-pool of p5); fewer: faster
 
 
 @dataclass
 class BackboneConfig:
-    name: str = "resnet_fpn"  # key in BACKBONES: "resnet_fpn" (p2..p6) | "resnet" (plain, res2..res5)
+    name: str = "resnet_fpn"  # key in BACKBONES: "resnet_fpn" (p2..p6, the paper's) | "resnet" (res2..res5: Mesh R-CNN)
     resnet: ResNetConfig = field(default_factory=ResNetConfig)
     fpn: FPNConfig = field(default_factory=FPNConfig)
 

@@ -9,43 +9,44 @@ from ..backbone import BackboneConfig, ResNetConfig
 
 @dataclass
 class AnchorConfig:
-    sizes: tuple[tuple[float, ...], ...] = ((32,), (64,), (128,), (256,), (512,))  # pixels, one tuple per RPN level
+    # pixels, one tuple per RPN level: scale them with the objects in the images
+    sizes: tuple[tuple[float, ...], ...] = ((32,), (64,), (128,), (256,), (512,))
     aspect_ratios: tuple[float, ...] = (0.5, 1.0, 2.0)  # height / width: widen it for long thin objects
 
 
 @dataclass
 class RPNConfig:
-    in_features: tuple[str, ...] = ("p2", "p3", "p4", "p5", "p6")  # backbone maps the RPN proposes on
+    in_features: tuple[str, ...] = ("p2", "p3", "p4", "p5", "p6")  # maps the RPN proposes on, one per anchors.sizes
     anchors: AnchorConfig = field(default_factory=AnchorConfig)
-    batch_size_per_image: int = 256  # anchors sampled per image for the RPN losses
+    batch_size_per_image: int = 256  # anchors sampled per image for the RPN losses (fewer: faster)
     pre_nms_topk_train: int = 2000  # proposals kept per level before NMS, in training (fewer: faster)
-    pre_nms_topk_test: int = 1000  # the same at inference
-    post_nms_topk_train: int = 1000  # proposals kept per image after NMS, in training
-    post_nms_topk_test: int = 1000  # the same at inference
-    nms_thresh: float = 0.7  # proposals overlapping a better one by more than this IoU are dropped
+    pre_nms_topk_test: int = 1000  # the same at inference (fewer: faster)
+    post_nms_topk_train: int = 1000  # proposals kept per image after NMS, in training (fewer: faster, for few objects)
+    post_nms_topk_test: int = 1000  # the same at inference: more than an image's objects
+    nms_thresh: float = 0.7  # proposals overlapping a better one by more IoU are dropped (higher: crowded objects)
 
 
 @dataclass
 class BoxHeadConfig:
-    fc_dim: int = 1024  # width of the box head's two FC layers
+    fc_dim: int = 1024  # width of the box head's two FC layers (smaller: faster)
 
 
 @dataclass
 class MaskHeadConfig:
-    num_conv: int = 4  # 3 x 3 convs before the 2x deconv to 28 x 28 masks
-    conv_dim: int = 256  # their width
+    num_conv: int = 4  # 3 x 3 convs before the 2x deconv to 28 x 28 masks (fewer: faster)
+    conv_dim: int = 256  # their width (smaller: faster)
 
 
 @dataclass
 class ROIHeadsConfig:
     name: str = "standard"  # mask branch, a key in ROI_HEADS: "standard" (Mask R-CNN) | "point_rend" (224² masks)
-    in_features: tuple[str, ...] = ("p2", "p3", "p4", "p5")  # backbone maps the RoI heads pool from
-    batch_size_per_image: int = 512  # proposals sampled per image for the box and mask losses
+    in_features: tuple[str, ...] = ("p2", "p3", "p4", "p5")  # backbone maps the RoI heads pool from, by box size
+    batch_size_per_image: int = 512  # proposals sampled per image for the box and mask losses (fewer: faster)
     canonical_box_size: float = 224.0  # boxes this big pool from level 4 (FPN eq. 1): scale it with the images
-    score_thresh_test: float = 0.05  # detections scoring below this are dropped
-    nms_thresh_test: float = 0.5  # per-class NMS IoU of the detections
-    detections_per_image: int = 100  # at most this many detections per image
-    mask_threshold: float = 0.5  # pasted mask probabilities at or above it are foreground
+    score_thresh_test: float = 0.05  # detections scoring below this are dropped (higher: fewer false ones)
+    nms_thresh_test: float = 0.5  # per-class NMS IoU of the detections (higher: keeps overlapping objects)
+    detections_per_image: int = 100  # at most this many detections per image: more than a scene's objects
+    mask_threshold: float = 0.5  # pasted mask probabilities at or above it are foreground (higher: tighter masks)
     box_head: BoxHeadConfig = field(default_factory=BoxHeadConfig)
     mask_head: MaskHeadConfig = field(default_factory=MaskHeadConfig)
 
