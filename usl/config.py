@@ -5,7 +5,7 @@
 A recipe (``usl/configs/<name>.yaml`` or any path) holds only what differs from the dataclass
 defaults; ``_base_: other.yaml`` inherits another recipe first. Overrides use dotted keys
 (``optim.lr=0.01``, ``model.shape.num_stages=1``) and YAML values (``data.root=/data/hs``,
-``optim.steps=[60000,75000]``). Unknown keys and ill-typed values are errors that name the key
+``optim.steps=[66000,74000]``). Unknown keys and ill-typed values are errors that name the key
 and the file, so a typo never silently trains with a default. The resolved config (every field)
 is saved in the run folder and in each checkpoint. A saved config may hold keys this version no
 longer has (options since removed, docs/experiments/removed-options.md): ``saved_config`` ignores

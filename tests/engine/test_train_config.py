@@ -40,6 +40,7 @@ def test_recipes_follow_the_papers_recipe_table():
     assert (hypersim.optim.name, hypersim.optim.lr, hypersim.optim.max_iter) == ("sgd", 1e-2, 80000)
     assert hypersim.loss.weights.offset_l2 == 0.05 and hypersim.loss.weights.mu_3d == 1.0
     assert hypersim.loss.render.resolution == 72 and hypersim.model.shape.num_stages == 3
+    assert hypersim.optim.steps == (66000, 74000) and scannet.optim.steps == (150000, 170000)
     assert scannet.model.shape.num_stages == 1 and scannet.optim.max_iter == 200000
     assert scannet.loss.weights.laplacian == 0.1 and scannet.loss.weights.offset_l2 == 0.05
     assert scannet.data.view_sampling == "time_distance" and scannet.optim.name == "sgd"  # inherited
