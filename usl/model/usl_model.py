@@ -90,11 +90,6 @@ class USLModel(nn.Module):
             print_report(init_detector(self.detector, cfg.init_weights, cfg.init_format))
         self.register_buffer("pixel_mean", torch.tensor(IMAGENET_MEAN).view(3, 1, 1), persistent=False)
         self.register_buffer("pixel_std", torch.tensor(IMAGENET_STD).view(3, 1, 1), persistent=False)
-        if not self.loss_cfg.weights.mu_2d:
-            # Without L_2D the RPN and RoI heads never run in training: freeze them, so optimizers
-            # and DDP only see parameters that get gradients.
-            self.detector.proposal_generator.requires_grad_(False)
-            self.detector.roi_heads.requires_grad_(False)
 
     @property
     def faces(self) -> Tensor:
