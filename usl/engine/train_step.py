@@ -35,7 +35,7 @@ class TrainStep:
         if info.device.type == "cpu":
             retain_freed_memory()
         self.model = USLModel(cfg.model, cfg.loss).to(info.device)
-        self.model.detector.lay_out_weights_like_features(info.device)  # before DDP lays out its buckets
+        self.model.lay_out_weights_like_features(info.device)  # before DDP lays out its buckets
         self.net: torch.nn.Module = self.model
         if info.distributed:
             # without L_2D the RPN, the RoI heads and the FPN maps only they read get no gradient
