@@ -26,7 +26,14 @@ import torch.nn.functional as F
 
 from usl.geometry.cameras import transform_points
 from usl.geometry.icosphere import ico_sphere
-from usl.render import SoftRasterSettings, rasterize_hard, rasterize_soft, rasterize_soft_dense, render_dynamic
+from usl.render import (
+    PaddedMasks,
+    SoftRasterSettings,
+    rasterize_hard,
+    rasterize_soft,
+    rasterize_soft_dense,
+    render_dynamic,
+)
 from usl.utils.compiled import torch_paths_only
 
 RESOLUTION = 72
@@ -153,8 +160,8 @@ def hypersim_like_batch(device: torch.device, repeats: int, num_objects: int = 5
         same = torch.equal(hard.instance_map, hard_torch.instance_map) and torch.equal(
             hard.depth_map, hard_torch.depth_map
         )
-    true_masks = hard.masks
-    visible = int((true_masks.flatten(1).any(1)).sum())
+    true_masks = PaddedMasks.of(hard.masks)
+    visible = int((hard.masks.flatten(1).any(1)).sum())
 
     def dynamic():
         verts = pred_cam.reshape(-1, 3).clone().requires_grad_(True)

@@ -20,7 +20,7 @@ from usl.losses import (
     soft_iou_loss,
 )
 from usl.model.multiview_loss import SilhouetteLoss
-from usl.render import render_dynamic
+from usl.render import PaddedMasks, render_dynamic
 
 Tensor = torch.Tensor
 
@@ -86,11 +86,11 @@ def multiview_silhouette_loss_per_pair(
         faces_packed,
         face_window,
         K,
-        pairs.masks,
+        PaddedMasks.of(pairs.masks),
         render.resolution,
         render.settings(),
         render.padding,
-        ignore_masks=pairs.occluders if cfg.ignore_occluders else None,
+        ignore_masks=PaddedMasks.of(pairs.occluders).padded if cfg.ignore_occluders else None,
     )
     xent = silhouette_bce_loss(rendered.soft, rendered.target, rendered.valid, cfg.iou_threshold)
     is_input = torch.cat(pairs.is_input)

@@ -38,10 +38,38 @@ def test_training_losses_and_eval_output_shapes():
         assert (output["scores"][:-1] >= output["scores"][1:]).all()
 
 
+def test_a_model_built_on_the_detector_gets_what_forward_computes_through_its_methods():
+    """USLModel's interface: the backbone's maps (with their shapes), the heads' training losses on
+    them, and detections without masks, each what ``forward`` computes."""
+    images, targets = make_dataset(2, seed=2)
+    detector = tiny_detector().train()
+    image_list = detector.preprocess(images)
+    features = detector.features(image_list)
+    shapes = detector.feature_shapes()
+    assert features.keys() == shapes.keys()
+    assert all(
+        m.shape[1:] == (shapes[n].channels, 128 // shapes[n].stride, 128 // shapes[n].stride)
+        for n, m in features.items()
+    )
+    torch.manual_seed(0)  # the RPN and the RoI heads sample anchors and proposals
+    losses = detector.losses(image_list, features, targets)
+    torch.manual_seed(0)
+    assert losses == detector(images, targets=targets)
+    with pytest.raises(RuntimeError, match="needs eval mode"):
+        detector.detect_boxes(image_list, features)
+    detector.eval()
+    with torch.no_grad():
+        detections = detector.detect_boxes(image_list, detector.features(image_list))
+        outputs = detector(images)
+    for found, output in zip(detections, outputs):
+        assert not found.has("pred_masks") and torch.equal(found.pred_boxes, output["boxes"])
+        assert torch.equal(found.scores, output["scores"]) and torch.equal(found.pred_classes, output["labels"])
+
+
 def test_parts_are_reusable_for_extra_heads():
     images, _ = make_dataset(2, seed=2)
     detector = tiny_detector().eval()
-    features = detector.backbone(detector.preprocess(images).tensor)
+    features = detector.features(detector.preprocess(images))
     boxes = [torch.tensor([[10.0, 10.0, 50.0, 60.0]]), torch.tensor([[0.0, 0.0, 128.0, 128.0], [5.0, 5.0, 9.0, 9.0]])]
     pooled = detector.roi_heads.box_pooler(features, boxes)
     assert pooled.shape == (3, 32, 7, 7)

@@ -149,7 +149,7 @@ def test_scene_shapes_recipe_trains_and_detects_on_a_small_image(recipe_model, s
         *(stage.offset.weight for stage in model.shape_head.stages),
     ):
         assert param.grad is not None and param.grad.abs().sum() > 0
-    assert all(p.grad is None for p in model.detector.roi_heads.parameters())  # frozen without L_2D
+    assert all(p.grad is None for p in model.detector.roi_heads.parameters())  # not trained without L_2D
     (pred,) = model.predict([sample.frame], mode="gt_boxes")
     assert pred.verts.shape == (len(sample.frame.boxes), 2562, 3) and torch.isfinite(pred.verts).all()
     (detected,) = model.predict([sample.frame], mode="detections")

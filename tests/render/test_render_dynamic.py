@@ -9,7 +9,7 @@ import torch.nn.functional as F
 from tests.render.per_pair_oracle import projected_boxes_of_kept_faces, render_dynamic_per_pair
 from tests.render.render_oracle import intrinsics, random_scene, render_pyrender
 from usl.geometry.cameras import scale_intrinsics
-from usl.render import SoftRasterSettings, render_dynamic, resample_masks_area
+from usl.render import PaddedMasks, SoftRasterSettings, render_dynamic, resample_masks_area
 from usl.render.dynamic import projected_boxes
 from usl.render.resample import _torch_resample_masks_area
 from usl.utils import compiled
@@ -91,10 +91,15 @@ def test_batched_render_matches_the_per_pair_oracle_in_values_and_gradients():
     masks[1] = torch.roll(masks[1], shifts=(3, -5), dims=(0, 1))  # a truth that differs from the mesh
     occluders = [torch.as_tensor(rng.random((h, w)) > 0.9) for h, w in sizes]
     verts, faces, window = pack([(m.vertices, m.faces) for m in objects])
+    padded = PaddedMasks.of(masks)
+    assert padded.padded.shape == (4, 64, 80) and padded.sizes.tolist() == [list(s) for s in sizes]
     results = []
-    for render in (render_dynamic, render_dynamic_per_pair):
+    for render, truth, hidden in (
+        (render_dynamic, padded, PaddedMasks.of(occluders).padded),
+        (render_dynamic_per_pair, masks, occluders),
+    ):
         v = verts.clone().requires_grad_(True)
-        out = render(v, faces, window, Ks, masks, resolution=24, ignore_masks=occluders)
+        out = render(v, faces, window, Ks, truth, resolution=24, ignore_masks=hidden)
         bce = F.binary_cross_entropy(out.soft.clamp(1e-6, 1 - 1e-6), out.target, reduction="none")
         (bce * out.valid).sum().backward()
         results.append((out, v.grad))
@@ -139,7 +144,9 @@ def test_windows_are_square_and_contain_the_true_silhouette_and_the_projected_me
     rng = np.random.default_rng(height)
     objects, true_masks, K = _predicted_and_true_objects(rng, height, width)
     verts, faces, window = pack([(m.vertices, m.faces) for m in objects])
-    out = render_dynamic(verts, faces, window, torch.as_tensor(K).expand(len(objects), 3, 3), true_masks, resolution=32)
+    out = render_dynamic(
+        verts, faces, window, torch.as_tensor(K).expand(len(objects), 3, 3), PaddedMasks.of(true_masks), resolution=32
+    )
     assert out.soft.shape == out.target.shape == out.valid.shape == (len(objects), 32, 32)
     for p, (mesh, mask) in enumerate(zip(objects, true_masks.numpy())):
         x0, y0, x1, y1 = out.windows[p].tolist()
@@ -164,7 +171,13 @@ def test_soft_render_is_aligned_with_the_target_when_the_mesh_is_the_truth():
     _, _, true_masks = render_pyrender(objects, np.eye(4), K8.numpy(), 8 * height, 8 * width)
     verts, faces, window = pack([(m.vertices, m.faces) for m in objects])
     out = render_dynamic(
-        verts, faces, window, K8.expand(3, 3, 3), torch.as_tensor(true_masks), resolution=resolution, settings=SHARP
+        verts,
+        faces,
+        window,
+        K8.expand(3, 3, 3),
+        PaddedMasks.of(torch.as_tensor(true_masks)),
+        resolution=resolution,
+        settings=SHARP,
     )
     for p in range(3):
         a, b = out.soft[p] > 0.5, out.target[p] > 0.5
@@ -184,7 +197,7 @@ def test_truncated_wide_objects_and_empty_pairs():
     verts, faces, window = pack([(box.vertices, box.faces), behind])
     true_masks = torch.zeros(2, height, width, dtype=torch.bool)
     true_masks[0, 15:25, 40:120] = True
-    out = render_dynamic(verts, faces, window, K.expand(2, 3, 3), true_masks, resolution=24)
+    out = render_dynamic(verts, faces, window, K.expand(2, 3, 3), PaddedMasks.of(true_masks), resolution=24)
 
     x0, y0, x1, y1 = out.windows[0].tolist()
     assert x1 == pytest.approx(width) and x0 <= 40 and x1 - x0 > height  # clipped to the image, wider than tall
@@ -196,15 +209,18 @@ def test_truncated_wide_objects_and_empty_pairs():
     assert out.windows[1].tolist() == pytest.approx([40.0, 0.0, 80.0, 40.0])
     assert out.soft[1].abs().sum() == 0 and out.target[1].sum() == 0
 
-    listed = render_dynamic(verts, faces, window, K.expand(2, 3, 3), list(true_masks), resolution=24)
-    assert torch.equal(listed.windows, out.windows) and torch.equal(listed.target, out.target)
+    # the same masks padded into a larger plane: windows and targets stay inside the image
+    padded = PaddedMasks(F.pad(true_masks, (0, 24, 0, 16)), PaddedMasks.of(true_masks).sizes)
+    listed = render_dynamic(verts, faces, window, K.expand(2, 3, 3), padded, resolution=24)
+    assert torch.equal(listed.windows, out.windows) and torch.equal(listed.valid, out.valid)
+    torch.testing.assert_close(listed.target, out.target, rtol=0, atol=1e-12)
     # Boxes given by the caller (an absent object's [0, 0, 0, 0] counts as no box).
     boxed = render_dynamic(
         verts,
         faces,
         window,
         K.expand(2, 3, 3),
-        true_masks,
+        PaddedMasks.of(true_masks),
         resolution=24,
         true_boxes=torch.tensor([[40.0, 15.0, 120.0, 25.0], [0.0, 0.0, 0.0, 0.0]]),
     )
@@ -218,6 +234,6 @@ def test_gradients_flow_to_vertices_through_the_window():
     K = torch.as_tensor(intrinsics(64, 64))[None]
     true_masks = torch.zeros(1, 64, 64, dtype=torch.bool)
     true_masks[0, 20:40, 30:45] = True
-    out = render_dynamic(verts, faces, window, K, true_masks, resolution=32)
+    out = render_dynamic(verts, faces, window, K, PaddedMasks.of(true_masks), resolution=32)
     F.binary_cross_entropy(out.soft.clamp(1e-6, 1 - 1e-6), out.target).backward()
     assert torch.isfinite(verts.grad).all() and verts.grad.abs().max() > 0

@@ -141,13 +141,23 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 def evaluate(args: argparse.Namespace) -> dict[str, Path]:
     """Score the predictors the arguments ask for and write the report; its files."""
-    from usl.evaluation.evaluate import build_predictors, dataset_spec, run_evaluation
+    from usl.evaluation.evaluate import dataset_spec, run_evaluation
     from usl.evaluation.report import write_report
+    from usl.evaluation.rows import RowOptions, build_predictors
     from usl.evaluation.scene import EvalConfig
     from usl.records import RecordsDataset
 
     dataset = RecordsDataset(args.root, args.split)
-    predictors, scored = build_predictors(args, dataset_spec(dataset.manifest))
+    rows = RowOptions(
+        rows=tuple(r.strip() for r in args.rows.split(",") if r.strip()) if args.rows else None,
+        checkpoint=args.checkpoint,
+        model_name=args.model_name,
+        device=args.device,
+        seed=args.seed,
+        sphere_level=args.sphere_level,
+        true_depth_source=args.true_depth_source,
+    )
+    predictors, scored = build_predictors(rows, dataset_spec(dataset.manifest))
     config = EvalConfig(
         input_views=args.input_views,
         other_views=args.other_views,

@@ -23,7 +23,7 @@ def build_optimizer(
     from the model (``USLModel.lr_factors``); every other parameter learns at ``cfg.lr``.
 
     Fused: one kernel per step instead of a few ops (and, for Adam, a step-count read) per parameter,
-    and it honours ``found_inf``, which ``TrainStep`` sets to skip a non-finite step without a host sync.
+    and ``GradScaler.step`` hands it the skip of a non-finite step on the device, without a host sync.
     """
     lr_factors = lr_factors or {}
     groups: dict[float, list[nn.Parameter]] = {}

@@ -1,9 +1,11 @@
 """One guarded optimisation step: the model (DDP-wrapped when distributed), optimizer, LR schedule,
 autocast on CUDA, gradient clipping, and a NaN/inf guard that skips the step on every rank.
 
-The step never waits for the device: the guard hands its verdict to the fused optimizer as
-``found_inf`` (the protocol ``GradScaler`` uses), which leaves parameters and state untouched on a
-non-finite step, and the returned values are 0-d tensors the trainer reads once per log interval."""
+The step never waits for the device. A non-finite step (loss or gradient norm, on any rank) is
+clipped against a NaN norm, which makes every gradient NaN; ``GradScaler``'s inf check then hands
+the skip to the fused optimizer on the device, leaving parameters and optimizer state untouched.
+Outside float16 autocast the scaler's scale stays 1: it is there for that check. The returned
+values are 0-d tensors the trainer reads once per log interval."""
 
 from __future__ import annotations
 
@@ -33,19 +35,21 @@ class TrainStep:
         if info.device.type == "cpu":
             retain_freed_memory()
         self.model = USLModel(cfg.model, cfg.loss).to(info.device)
-        self.model.detector.lay_out_weights_like_features(info.device)  # before DDP lays out its buckets
+        self.model.lay_out_weights_like_features(info.device)  # before DDP lays out its buckets
         self.net: torch.nn.Module = self.model
         if info.distributed:
+            # without L_2D the RPN, the RoI heads and the FPN maps only they read get no gradient
             self.net = DistributedDataParallel(
                 self.model,
                 device_ids=[info.device] if info.device.type == "cuda" else None,
-                find_unused_parameters=not cfg.loss.weights.mu_2d,  # without L_2D, FPN levels go unused
+                find_unused_parameters=not cfg.loss.weights.mu_2d,
             )
         self.params = [p for p in self.model.parameters() if p.requires_grad]
         self.optimizer = build_optimizer(self.model.named_parameters(), cfg.optim, self.model.lr_factors())
         self.scheduler = build_scheduler(self.optimizer, cfg.optim)
         self.amp_dtype = AMP_DTYPES.get(cfg.train.amp) if info.device.type == "cuda" else None
-        self.scaler = torch.amp.GradScaler("cuda", enabled=self.amp_dtype is torch.float16)
+        self.loss_scaling = self.amp_dtype is torch.float16  # dynamic loss scale; otherwise it stays 1
+        self.scaler = torch.amp.GradScaler(info.device.type, init_scale=2.0**16 if self.loss_scaling else 1.0)
         self.skipped_total = torch.zeros((), dtype=torch.long, device=info.device)
 
     def state_dict(self) -> dict[str, Any]:
@@ -53,7 +57,7 @@ class TrainStep:
             "model": self.model.state_dict(),
             "optimizer": self.optimizer.state_dict(),
             "scheduler": self.scheduler.state_dict(),
-            "scaler": self.scaler.state_dict(),
+            "scaler": self.scaler.state_dict() if self.loss_scaling else {},
             "skipped_steps": self.skipped,
         }
 
@@ -62,7 +66,8 @@ class TrainStep:
         self.optimizer.load_state_dict(state["optimizer"])
         lay_out_state_like_params(self.optimizer)
         self.scheduler.load_state_dict(state["scheduler"])
-        self.scaler.load_state_dict(state["scaler"])
+        if self.loss_scaling:
+            self.scaler.load_state_dict(state["scaler"])
         self.skipped_total.fill_(int(state.get("skipped_steps", 0)))
 
     @property
@@ -81,16 +86,16 @@ class TrainStep:
             losses = self.net(batch, iteration=iteration, diagnostics=diagnostics)
         loss = losses["loss"]
         self.scaler.scale(loss).backward()
-        self.scaler.unscale_(self.optimizer)
-        clip = self.cfg.optim.clip_grad_norm
-        grad_norm = torch.nn.utils.clip_grad_norm_(self.params, clip if clip > 0 else math.inf)
+        scale = self.scaler.scale(torch.ones((), device=device))  # the gradients are still scaled by it
+        grad_norm = torch.nn.utils.get_total_norm([p.grad for p in self.params if p.grad is not None]) / scale
         finite = torch.isfinite(loss.detach()) & torch.isfinite(grad_norm)
         skipped = all_reduce_min(finite.float().reshape(1)).reshape(()) <= 0  # every rank skips together
-        # the fused optimizer skips on device when found_inf is set (GradScaler sets it itself)
-        self.optimizer.grad_scale, self.optimizer.found_inf = None, skipped.float()
-        self.scaler.step(self.optimizer)
+        clip = self.cfg.optim.clip_grad_norm
+        clip_norm = torch.where(skipped, math.nan, grad_norm)  # a skipped step's gradients all become NaN
+        torch.nn.utils.clip_grads_with_norm_(self.params, clip if clip > 0 else math.inf, clip_norm)
+        self.scaler.step(self.optimizer)  # checks the gradients for inf/NaN, unscales them, skips on the device
         self.skipped_total += skipped
-        self.scaler.update()
+        self.scaler.update(None if self.loss_scaling else 1.0)
         self.optimizer.zero_grad(set_to_none=True)
         with warnings.catch_warnings():  # a skipped step is deliberate; the schedule counts iterations
             warnings.filterwarnings("ignore", message="Detected call of `lr_scheduler.step", category=UserWarning)

@@ -1,6 +1,6 @@
 """The rows and picture selections ``usl-eval`` offers: torch-free, so its ``--help`` can list them and the
-evaluation code can check against the same names without importing its command line."""
+evaluation code can check against the same names without importing its command line (the rows'
+builders: ``usl.evaluation.rows``)."""
 
 ROWS = ("random", "fixed", "model", "detections", "layout_only", "sphere_true_depth", "model_true_depth")
-MODEL_ROWS = ("model", "detections", "layout_only", "model_true_depth")
 PICTURE_SELECTIONS = ("spread", "extremes")  # see usl.evaluation.gallery

@@ -3,12 +3,12 @@ the input views of a split, scene by scene, into per-object rows, summaries and 
 
 The metric definitions are in ``usl.evaluation.render`` (pairs), ``scene`` (one scene's rows),
 ``summary`` (aggregation), ``views`` (which views), ``detection`` (matching, AP) and ``baselines``;
-the pictures in ``pictures`` and their choice and index in ``gallery``.
+the table rows' predictors in ``rows``; the pictures in ``pictures`` and their choice and index in
+``gallery``.
 """
 
 from __future__ import annotations
 
-import argparse
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, Sequence
@@ -17,8 +17,6 @@ from tqdm import tqdm
 
 from data_specs import DATASETS, load_dataset_spec
 from usl.data.frames import CategoryIndex
-from usl.evaluation.baselines import FixedDepthBaseline, LayoutOnly, TrueDepth, spec_baselines
-from usl.evaluation.choices import MODEL_ROWS, ROWS
 from usl.evaluation.detection import CocoDetections
 from usl.evaluation.gallery import Gallery
 from usl.evaluation.scene import EvalConfig, evaluate_scene
@@ -119,50 +117,3 @@ def run_evaluation(
     }
     layout = choose_layout(header["dataset"], summaries) if table_layout == "auto" else table_layout
     return EvalRun(header, summaries, rows, layout, gallery.write_index(rows))
-
-
-def build_predictors(args: argparse.Namespace, spec: dict[str, Any]) -> tuple[list[Predictor], dict[str, Any] | None]:
-    """The table rows asked for on the command line, in the paper's order, and the checkpoint the
-    model rows score (path, iteration, supervision, row name; None without model rows)."""
-    wanted = (
-        [r.strip() for r in args.rows.split(",") if r.strip()]
-        if args.rows
-        else (["random", "fixed"] + (["model", "layout_only"] if args.checkpoint else []))
-    )
-    unknown = [r for r in wanted if r not in ROWS]
-    if unknown:
-        raise UslError(f"--rows: unknown row(s) {unknown}; choose from {', '.join(ROWS)}")
-    needs_model = [r for r in wanted if r in MODEL_ROWS]
-    if needs_model and not args.checkpoint:
-        raise UslError(f"--rows {','.join(needs_model)} need a --checkpoint")
-    baselines = spec_baselines(spec.get("baselines") or {}, seed=args.seed, level=args.sphere_level)
-    for row in ("random", "fixed", "sphere_true_depth"):
-        key = "fixed" if row == "sphere_true_depth" else row
-        if row in wanted and key not in baselines:
-            raise UslError(
-                f"--rows {row}: the dataset spec of {spec.get('name')!r} has no {key}_depth baseline parameters"
-            )
-    model = detector = scored = None
-    if needs_model:
-        from usl.evaluation.model import model_predictors  # imports the model only when it is used
-
-        model, detector, scored = model_predictors(
-            args.checkpoint, args.device, [c["name"] for c in spec["categories"]], args.model_name
-        )
-    made: dict[str, Predictor] = {}
-    for row in wanted:
-        if row in ("random", "fixed"):
-            made[row] = baselines[row]
-        elif row == "model":
-            made[row] = model
-        elif row == "detections":
-            made[row] = detector
-        elif row == "layout_only":
-            made[row] = LayoutOnly(model, level=args.sphere_level, name=f"Layout-only ({model.name})")
-        elif row == "sphere_true_depth":
-            fixed = baselines["fixed"]
-            sphere = FixedDepthBaseline(fixed.z, fixed.rho, level=args.sphere_level, name="Sphere-only")
-            made[row] = TrueDepth(sphere, args.true_depth_source, name="Sphere-only w/ true depth")
-        elif row == "model_true_depth":
-            made[row] = TrueDepth(model, args.true_depth_source)
-    return list(made.values()), scored

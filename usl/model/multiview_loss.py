@@ -39,8 +39,8 @@ from usl.losses import (
     silhouette_chamfer_loss,
     soft_iou_loss,
 )
-from usl.render import render_dynamic
-from usl.render.resample import stack_masks
+from usl.render import PaddedMasks, render_dynamic
+from usl.render.masks import pad_cat
 
 Tensor = torch.Tensor
 
@@ -58,10 +58,9 @@ class _Pairs:
     points: Tensor  # (P, S, 3) mesh surface points in view j's camera frame
     true_points: Tensor  # (P, T, 2)
     true_lengths: Tensor  # (P,)
-    masks: Tensor | list[Tensor]  # (P, H, W) (or P masks of their views' sizes)
-    occluders: Tensor | list[Tensor] | None  # other objects' pixels (loss.ignore_occluders)
+    masks: PaddedMasks  # each pair's true mask, with its view's (H, W)
+    occluders: Tensor | None  # (P, H, W) other objects' pixels, padded as the masks (loss.ignore_occluders)
     K: Tensor  # (P, 3, 3)
-    sizes: Tensor  # (P, 2) (H, W)
     present: Tensor  # (P,) bool
     weight: Tensor  # (P,) 1 / (present pairs of the sample's image) / batch size; 0 where absent
     is_input: Tensor  # (P,) bool, the pair's view is the input view
@@ -105,7 +104,7 @@ def multiview_silhouette_loss(
     verts, K, present = pairs.verts, pairs.K, pairs.present
     dist_factor = cfg.weights.dist * cfg.dist_scale * cfg.dist_schedule(iteration)
     if dist_factor:
-        dist = silhouette_chamfer_loss(pairs.points, K, pairs.sizes, pairs.true_points, pairs.true_lengths)
+        dist = silhouette_chamfer_loss(pairs.points, K, pairs.masks.sizes, pairs.true_points, pairs.true_lengths)
     else:  # "w/o l_dist": not computed, so it contributes exactly no gradient (and costs nothing)
         dist = verts.new_zeros(len(verts))
     num_pairs, num_verts = verts.shape[:2]
@@ -126,7 +125,6 @@ def multiview_silhouette_loss(
         render.settings(),
         render.padding,
         ignore_masks=pairs.occluders,
-        image_sizes=pairs.sizes,
     )
     xent = silhouette_bce_loss(rendered.soft, rendered.target, rendered.valid, cfg.iou_threshold)
     is_input = pairs.is_input
@@ -193,15 +191,13 @@ def _gather_pairs(
         first_row += num_objects
         if not num_objects:
             continue
-        masks = _view_masks(sample)
-        true_points, true_lengths = sample_mask_points(
-            masks if isinstance(masks, Tensor) else stack_masks(masks), cfg.mesh_points, generator=generators[index]
-        )
+        masks = pad_cat([view.masks for view in sample.views])  # (M N, H, W), view by view
+        true_points, true_lengths = sample_mask_points(masks, cfg.mesh_points, generator=generators[index])
         parts["true_points"].append(true_points)
         parts["true_lengths"].append(true_lengths)
         parts["masks"].append(masks)
         if cfg.ignore_occluders:
-            parts["occluders"].append(_occluders(sample, masks))
+            parts["occluders"].append(_occluders(masks, num_views))
         pair_rows += [(start + o, len(poses) + j, index, j == 0) for j in range(num_views) for o in range(num_objects)]
         input_views += [len(poses)] * num_views
         poses += [view.cam_to_world for view in sample.views]
@@ -217,10 +213,9 @@ def _gather_pairs(
     return _Pairs(
         verts=transform_points(verts_cam[pair_object], to_view),
         points=transform_points(surfaces[pair_object], to_view),
-        masks=_join_masks(masks),
-        occluders=_join_masks(occluders) if cfg.ignore_occluders else None,
+        masks=PaddedMasks(pad_cat(masks), to_device(sizes, device)[pair_view]),
+        occluders=pad_cat(occluders) if cfg.ignore_occluders else None,
         K=torch.stack(intrinsics).float()[pair_view],
-        sizes=to_device(sizes, device)[pair_view],
         present=present,
         weight=present.float() / (per_sample[pair_sample].clamp(min=1) * batch_size),
         is_input=is_input.bool(),
@@ -228,27 +223,11 @@ def _gather_pairs(
     )
 
 
-def _view_masks(sample: MultiViewSample) -> Tensor | list[Tensor]:
-    """(M N, H, W) masks of the sample's views, or M N masks when its views differ in size."""
-    if len({view.size for view in sample.views}) == 1:
-        return torch.cat([view.masks for view in sample.views])
-    return [mask for view in sample.views for mask in view.masks]
-
-
-def _occluders(sample: MultiViewSample, masks: Tensor | list[Tensor]) -> Tensor | list[Tensor]:
-    """Each pair's pixels of the other objects in that view, from the sample's ``_view_masks``: a few
-    ops for all of its views when they share a size."""
-    if isinstance(masks, Tensor):
-        by_view = masks.unflatten(0, (len(sample.views), -1))  # (N, M, H, W)
-        return (by_view.any(dim=1, keepdim=True) & ~by_view).flatten(0, 1)
-    blocks = [view.masks.any(dim=0, keepdim=True) & ~view.masks for view in sample.views]
-    return [mask for block in blocks for mask in block]
-
-
-def _join_masks(blocks: list[Tensor | list[Tensor]]) -> Tensor | list[Tensor]:
-    if all(isinstance(b, Tensor) for b in blocks) and len({tuple(b.shape[1:]) for b in blocks}) == 1:
-        return torch.cat(blocks)
-    return [mask for block in blocks for mask in block]
+def _occluders(masks: Tensor, num_views: int) -> Tensor:
+    """Each pair's pixels of the other objects in that view, from a sample's (M N, H, W) masks (view
+    by view; padding is False in every mask, so in every occluder)."""
+    by_view = masks.unflatten(0, (num_views, -1))  # (M, N, H, W)
+    return (by_view.any(dim=1, keepdim=True) & ~by_view).flatten(0, 1)
 
 
 def shape_regularizers(

@@ -70,7 +70,7 @@ class USLModel(nn.Module):
         self.cfg = cfg
         self.loss_cfg = loss_cfg or LossConfig()
         self.detector = MaskRCNN(len(cfg.categories), cfg.detector)
-        shapes = self.detector.backbone.output_shape()
+        shapes = self.detector.feature_shapes()
         for name in cfg.layout.in_features:
             if name not in shapes:
                 raise ValueError(f"model.layout.in_features: backbone has no feature {name!r}; it has {sorted(shapes)}")
@@ -90,16 +90,15 @@ class USLModel(nn.Module):
             print_report(init_detector(self.detector, cfg.init_weights, cfg.init_format))
         self.register_buffer("pixel_mean", torch.tensor(IMAGENET_MEAN).view(3, 1, 1), persistent=False)
         self.register_buffer("pixel_std", torch.tensor(IMAGENET_STD).view(3, 1, 1), persistent=False)
-        if not self.loss_cfg.weights.mu_2d:
-            # Without L_2D the RPN and RoI heads never run in training: freeze them, so optimizers
-            # and DDP only see parameters that get gradients.
-            self.detector.proposal_generator.requires_grad_(False)
-            self.detector.roi_heads.requires_grad_(False)
 
     @property
     def faces(self) -> Tensor:
         """(F, 3) int64 faces shared by every predicted mesh."""
         return self.shape_head.faces
+
+    def lay_out_weights_like_features(self, device: torch.device) -> None:
+        """The detector's :meth:`~usl.model.detector.MaskRCNN.lay_out_weights_like_features` (before DDP)."""
+        self.detector.lay_out_weights_like_features(device)
 
     def lr_factors(self) -> dict[str, float]:
         """Learning-rate factors by parameter-name prefix, for parts that need their own rate."""
@@ -115,7 +114,7 @@ class USLModel(nn.Module):
             h, w = frame.size
             batch[index, :, :h, :w] = (frame.image.to(device) - self.pixel_mean) / self.pixel_std
         image_list = self.detector.preprocess(batch, sizes)
-        features = self.detector.backbone(image_list.tensor)
+        features = self.detector.features(image_list)
         if IMAGE_MAP in self.cfg.shape.features:  # the normalised image itself, a stride-1 map
             features = {**features, IMAGE_MAP: image_list.tensor}
         return image_list, features
@@ -155,10 +154,7 @@ class USLModel(nn.Module):
         detection = None
         if weights.mu_2d:
             targets = [{"boxes": f.boxes, "labels": f.labels, "masks": f.masks} for f in frames]
-            gt = self.detector.targets_to_instances(targets, image_list.image_sizes)
-            proposals, rpn_losses = self.detector.proposal_generator(image_list, features, gt)
-            _, roi_losses = self.detector.roi_heads(features, proposals, gt)
-            detection = {**rpn_losses, **roi_losses}
+            detection = self.detector.losses(image_list, features, targets)
         outputs = self.objects(
             features,
             [s.frame.boxes[s.object_rows] for s in samples],
@@ -224,8 +220,7 @@ class USLModel(nn.Module):
                 scores = [torch.ones(len(b), device=device) for b in boxes]
                 ids = [f.instance_ids.to(device) for f in frames]
             else:
-                proposals, _ = self.detector.proposal_generator(image_list, features)
-                detections = self.detector.roi_heads.forward_box(features, proposals)
+                detections = self.detector.detect_boxes(image_list, features)
                 boxes = [d.pred_boxes for d in detections]
                 labels = [d.pred_classes for d in detections]
                 scores = [d.scores for d in detections]

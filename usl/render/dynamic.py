@@ -24,16 +24,16 @@ back to the host.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 from dataclasses import dataclass
 
 import torch
 
 from usl.metrics.boxes import masks_to_boxes
-from usl.render.resample import resample_masks_area, stack_masks
+from usl.render.masks import PaddedMasks
+from usl.render.resample import resample_masks_area
 from usl.render.screen import check_packed_inputs, project_faces
 from usl.render.soft import SoftRasterSettings, rasterize_soft
-from usl.utils.transfer import constant, to_device
+from usl.utils.transfer import constant
 
 Tensor = torch.Tensor
 
@@ -56,14 +56,13 @@ def render_dynamic(
     faces: Tensor,
     face_window: Tensor,
     K: Tensor,
-    true_masks: Tensor | Sequence[Tensor],
+    true_masks: PaddedMasks,
     resolution: int = 72,
     settings: SoftRasterSettings = SoftRasterSettings(),
     padding: float = 0.05,
     min_size: float = 4.0,
     true_boxes: Tensor | None = None,
-    ignore_masks: Tensor | Sequence[Tensor] | None = None,
-    image_sizes: Tensor | None = None,
+    ignore_masks: Tensor | None = None,
 ) -> DynamicRender:
     """Soft silhouettes and matching true-mask crops for P (object, view) pairs.
 
@@ -73,30 +72,30 @@ def render_dynamic(
         faces: (F, 3) long indices into ``verts``.
         face_window: (F,) long pair index p of each face, in [0, P).
         K: (P, 3, 3) full-image intrinsics of each pair's view.
-        true_masks: (P, H, W) bool, or a sequence of P (H_p, W_p) bool masks; the mask
-            shape is the view's image size (masks of different sizes are padded to one).
+        true_masks: each pair's true mask, at its view's image size (the windows stay inside
+            that size, whatever the padding).
         resolution: R, the side of every rendered window (the paper: 128 or 72).
         settings: soft rasterizer parameters (the paper: the defaults).
         padding: growth of the union box, as a fraction of its longer side, on every side.
         min_size: smallest window side in image pixels.
         true_boxes: (P, 4) boxes of the true masks (e.g. the records' ``box_xyxy``), to skip
             computing them from the masks; they must contain the masks' True pixels.
-        ignore_masks: optional (P, H, W) or P (H_p, W_p) bool masks of unobserved pixels (e.g.
-            where another object is in the way): cells covered more than half by them are not ``valid``.
-        image_sizes: (P, 2) (height, width) of each pair's view, when the masks are a padded
-            (P, H, W) stack of views of different sizes (default: the masks' shapes).
+        ignore_masks: optional (P, H, W) bool masks of unobserved pixels (e.g. where another object
+            is in the way), padded as ``true_masks.padded``: cells covered more than half by them
+            are not ``valid``.
     """
     check_packed_inputs(verts, faces, face_window, K, "render_dynamic")
     num_pairs = K.shape[0]
     if len(true_masks) != num_pairs:
         raise ValueError(f"render_dynamic: K has {num_pairs} pairs but true_masks has {len(true_masks)}")
-    if ignore_masks is not None and len(ignore_masks) != num_pairs:
-        raise ValueError(f"render_dynamic: K has {num_pairs} pairs but ignore_masks has {len(ignore_masks)}")
+    if ignore_masks is not None and ignore_masks.shape != true_masks.padded.shape:
+        raise ValueError(
+            f"render_dynamic: ignore_masks must be padded as true_masks, {tuple(true_masks.padded.shape)}; "
+            f"got {tuple(ignore_masks.shape)}"
+        )
     faces, face_window = faces.long(), face_window.long()
-    if image_sizes is None:
-        image_sizes = _mask_sizes(true_masks, num_pairs, K.device)
-    image_sizes = image_sizes.to(device=K.device, dtype=torch.float64)
-    masks = stack_masks(true_masks).to(K.device)
+    image_sizes = true_masks.sizes.to(device=K.device, dtype=torch.float64)
+    masks = true_masks.padded.to(K.device)
     with torch.no_grad():
         truth = mask_boxes(masks) if true_boxes is None else _empty_if_degenerate(true_boxes.to(torch.float64))
         boxes = _union(truth.to(K.device), projected_boxes(verts, faces, face_window, K, settings.near))
@@ -106,8 +105,8 @@ def render_dynamic(
     valid = _cells_inside_image(windows, image_sizes, resolution)
     if ignore_masks is None:
         target = resample_masks_area(masks, windows, resolution)
-    else:  # both stacks in one call (padded to one size, which changes no coverage)
-        both = _cat_padded(stack_masks(masks), stack_masks(ignore_masks).to(K.device))
+    else:  # both stacks in one call
+        both = torch.cat([masks, ignore_masks.to(K.device)])
         target, hidden = resample_masks_area(both, windows.repeat(2, 1), resolution).split(num_pairs)
         valid = valid & (hidden <= 0.5)
     return DynamicRender(
@@ -117,12 +116,6 @@ def render_dynamic(
         windows=windows.to(K.dtype),
         K_window=K_window,
     )
-
-
-def _mask_sizes(masks: Tensor | Sequence[Tensor], num_pairs: int, device: torch.device) -> Tensor:
-    if isinstance(masks, Tensor):
-        return constant(tuple(masks.shape[-2:]), torch.float64, device).expand(num_pairs, 2)
-    return to_device([tuple(m.shape[-2:]) for m in masks], device, torch.float64).reshape(num_pairs, 2)
 
 
 def mask_boxes(masks: Tensor) -> Tensor:
@@ -220,11 +213,3 @@ def _cells_inside_image(windows: Tensor, image_sizes: Tensor, resolution: int) -
     inside_x = (xs >= 0) & (xs <= image_sizes[:, 1:2])
     inside_y = (ys >= 0) & (ys <= image_sizes[:, 0:1])
     return inside_y[:, :, None] & inside_x[:, None, :]
-
-
-def _cat_padded(first: Tensor, second: Tensor) -> Tensor:
-    """Two (P, H, W) mask stacks as one, the smaller padded with False to the larger size (no
-    coverage changes; no per-mask slices)."""
-    height, width = max(first.shape[-2], second.shape[-2]), max(first.shape[-1], second.shape[-1])
-    padded = [torch.nn.functional.pad(m, (0, width - m.shape[-1], 0, height - m.shape[-2])) for m in (first, second)]
-    return torch.cat(padded)

@@ -16,7 +16,6 @@ corner tensors.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
 
 import numpy as np
 import torch
@@ -24,22 +23,6 @@ import torch
 from usl.utils.compiled import compiled, serves
 
 Tensor = torch.Tensor
-
-
-def stack_masks(masks: Tensor | Sequence[Tensor]) -> Tensor:
-    """(P, H, W) bool masks; masks of different sizes are padded with False to the largest (area
-    outside an image counts as uncovered, so padding changes no coverage and no box)."""
-    if isinstance(masks, Tensor):
-        return masks.bool()
-    if not len(masks):
-        return torch.zeros(0, 1, 1, dtype=torch.bool)
-    height, width = max(m.shape[-2] for m in masks), max(m.shape[-1] for m in masks)
-    if all(tuple(m.shape[-2:]) == (height, width) for m in masks):
-        return torch.stack(list(masks)).bool()
-    out = torch.zeros(len(masks), height, width, dtype=torch.bool, device=masks[0].device)
-    for index, mask in enumerate(masks):
-        out[index, : mask.shape[-2], : mask.shape[-1]] = mask
-    return out
 
 
 def resample_masks_area(masks: Tensor, windows: Tensor, resolution: int) -> Tensor:

@@ -7,7 +7,7 @@ from typing import Optional, Sequence, Union
 import torch
 from torch import nn
 
-from ..backbone import build_backbone
+from ..backbone import ShapeSpec, build_backbone
 from ..backbone.resnet import channels_last_on
 from .config import DetectorConfig
 from .roi_heads import build_roi_heads
@@ -24,9 +24,11 @@ class InvalidTargetError(ValueError):
 class MaskRCNN(nn.Module):
     """Mask R-CNN detector for ``num_classes`` categories (labels ``0 .. num_classes - 1``).
 
-    Parts are public so later heads can reuse them: ``backbone(images)`` gives the feature
-    dict (FPN ``p2..p6``, or a plain ResNet's ``res2..res5``), ``proposal_generator`` the RPN, ``roi_heads.box_pooler(features, boxes)``
-    pooled RoI features.
+    A model built on it shares its backbone through :meth:`preprocess`, :meth:`features` and
+    :meth:`feature_shapes` (FPN ``p2..p6``, or a plain ResNet's ``res2..res5``) and runs its heads on
+    those features through :meth:`losses` (training) and :meth:`detect_boxes` (inference). The parts
+    (``backbone``, ``proposal_generator``: the RPN, ``roi_heads``) keep their attribute names: they
+    are the state-dict keys the pretrained layouts map onto.
     """
 
     def __init__(self, num_classes: int, cfg: Optional[DetectorConfig] = None):
@@ -72,15 +74,38 @@ class MaskRCNN(nn.Module):
         Eval boxes are in input pixels; ``masks`` are bool (K, h_i, w_i).
         """
         image_list = self.preprocess(images, image_sizes)
-        gt = self.targets_to_instances(targets, image_list.image_sizes) if targets is not None else None
-        if self.training and gt is None:
-            raise ValueError("MaskRCNN needs targets in training mode")
-        features = self.backbone(image_list.tensor)
-        proposals, rpn_losses = self.proposal_generator(image_list, features, gt)
-        instances, roi_losses = self.roi_heads(features, proposals, gt)
         if self.training:
-            return {**rpn_losses, **roi_losses}
-        return [self.instances_to_dict(d) for d in instances]
+            if targets is None:
+                raise ValueError("MaskRCNN needs targets in training mode")
+            return self.losses(image_list, self.features(image_list), targets)
+        features = self.features(image_list)
+        detections = self.roi_heads.forward_mask(features, self.detect_boxes(image_list, features))
+        return [self.instances_to_dict(d) for d in detections]
+
+    def feature_shapes(self) -> dict[str, ShapeSpec]:
+        """Channels and stride of each of :meth:`features`' maps, by name."""
+        return self.backbone.output_shape()
+
+    def features(self, image_list: ImageList) -> dict[str, Tensor]:
+        """The backbone's feature maps of :meth:`preprocess`'s images."""
+        return self.backbone(image_list.tensor)
+
+    def losses(
+        self, image_list: ImageList, features: dict[str, Tensor], targets: Sequence[dict[str, Tensor]]
+    ) -> dict[str, Tensor]:
+        """Training: the RPN's and RoI heads' losses against ``targets`` (laid out as :meth:`forward`'s)."""
+        gt = self.targets_to_instances(targets, image_list.image_sizes)
+        proposals, rpn_losses = self.proposal_generator(image_list, features, gt)
+        _, roi_losses = self.roi_heads(features, proposals, gt)
+        return {**rpn_losses, **roi_losses}
+
+    def detect_boxes(self, image_list: ImageList, features: dict[str, Tensor]) -> list[Instances]:
+        """Eval: detections per image (``pred_boxes``, ``scores``, ``pred_classes``) after score
+        threshold, per-class NMS and top-k, without masks."""
+        if self.training:
+            raise RuntimeError("MaskRCNN.detect_boxes needs eval mode")
+        proposals, _ = self.proposal_generator(image_list, features)
+        return self.roi_heads.forward_box(features, proposals)
 
     @torch.no_grad()
     def detect(self, images: Tensor, image_sizes: Optional[Sequence[tuple[int, int]]] = None) -> list[Instances]:
@@ -91,9 +116,8 @@ class MaskRCNN(nn.Module):
         if self.training:
             raise RuntimeError("MaskRCNN.detect needs eval mode")
         image_list = self.preprocess(images, image_sizes)
-        features = self.backbone(image_list.tensor)
-        proposals, _ = self.proposal_generator(image_list, features, None)
-        detections = self.roi_heads.forward_box(features, proposals)
+        features = self.features(image_list)
+        detections = self.detect_boxes(image_list, features)
         probabilities = self.roi_heads.mask_probabilities(features, detections)
         for instances, probs in zip(detections, probabilities.split([len(d) for d in detections])):
             instances.mask_probs = probs
