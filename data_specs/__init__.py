@@ -5,7 +5,7 @@ The YAML files beside this module are the single source of truth; code loads the
 
 from __future__ import annotations
 
-from functools import lru_cache
+from functools import cache
 from pathlib import Path
 from typing import Any
 
@@ -15,7 +15,7 @@ SPEC_DIR = Path(__file__).resolve().parent
 DATASETS = ("scene_shapes", "hypersim", "scannet", "captures")
 
 
-@lru_cache(maxsize=None)
+@cache
 def load_schema_spec(version: int = 3) -> dict[str, Any]:
     """The record schema of the given version, as declared in ``schema_v<version>.yaml``."""
     path = SPEC_DIR / f"schema_v{version}.yaml"
@@ -24,7 +24,7 @@ def load_schema_spec(version: int = 3) -> dict[str, Any]:
     return yaml.safe_load(path.read_text())
 
 
-@lru_cache(maxsize=None)
+@cache
 def load_dataset_spec(name: str) -> dict[str, Any]:
     """Categories, layout ranges and baseline parameters of one dataset."""
     path = SPEC_DIR / f"{name}.yaml"
@@ -33,7 +33,7 @@ def load_dataset_spec(name: str) -> dict[str, Any]:
     return yaml.safe_load(path.read_text())
 
 
-@lru_cache(maxsize=None)
+@cache
 def coco_category_ids() -> tuple[int, ...]:
     """COCO's 80 category ids in the contiguous order COCO-trained segmenters number their classes."""
     return tuple(int(c["id"]) for c in yaml.safe_load((SPEC_DIR / "coco.yaml").read_text())["categories"])

@@ -15,13 +15,13 @@ them with one warning naming them, so old checkpoints still evaluate, predict an
 from __future__ import annotations
 
 import warnings
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import Any
 
 import yaml
 
-from usl.records.atomic import write_text_atomic
 from usl.config_io import (  # noqa: F401  (re-exported: usl.config is where callers import them)
     ConfigError,
     deep_merge,
@@ -31,10 +31,11 @@ from usl.config_io import (  # noqa: F401  (re-exported: usl.config is where cal
     read_yaml_config,
     to_dict,
 )
-from usl.errors import UslWarning
 from usl.data.config import DataConfig
 from usl.engine.config import OptimConfig, TrainConfig, ValidationConfig
+from usl.errors import UslWarning
 from usl.model.config import DETECTOR_PRESETS, LossConfig, ModelConfig
+from usl.records.atomic import write_text_atomic
 
 CONFIG_DIR = Path(__file__).resolve().parent / "configs"
 

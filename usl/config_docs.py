@@ -17,8 +17,9 @@ import textwrap
 import tokenize
 import types
 import typing
+from collections.abc import Iterator
 from dataclasses import dataclass
-from typing import Any, Iterator
+from typing import Any
 
 from usl.config import to_dict
 
@@ -31,7 +32,7 @@ class KeyDoc:
     doc: str
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def field_docs(cls: type) -> dict[str, str]:
     """Field name -> its comment, for a dataclass and the dataclasses it inherits from."""
     docs: dict[str, str] = {}

@@ -134,7 +134,7 @@ class Capture:
     def close(self) -> None:
         pass
 
-    def __enter__(self) -> "Capture":
+    def __enter__(self) -> Capture:
         return self
 
     def __exit__(self, *exc: object) -> None:

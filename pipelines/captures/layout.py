@@ -64,7 +64,7 @@ def find_captures(root: Path, sfm: bool) -> list[tuple[str, Path, CaptureSource]
     if not captures:
         need = "images/ or a video file (--poses sfm)" if sfm else WHAT
         raise UslError(f"{root}: neither it nor a folder in it holds a capture ({need})")
-    for scene_id, folder, source in captures:
+    for _scene_id, folder, source in captures:
         if source.kind in ("images", "video") and not sfm:
             raise UslError(f"{folder}: frames without poses ({source.path}); pass --poses sfm to compute them")
     return captures

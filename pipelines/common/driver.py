@@ -14,20 +14,21 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from collections.abc import Callable, Generator, Iterator
 from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
-from typing import Any, Callable, Generator, Iterator
+from typing import Any
 
 from tqdm import tqdm
 
 from usl.cli.common import common_options
+from usl.errors import UslError, one_line
 from usl.records.build_state import STATE_DIR, BuildState, shard_name
 from usl.records.claims import STALE_AFTER_SECONDS, Owner
 from usl.records.encode import SceneRecord, Skip
-from usl.errors import UslError, one_line
-from usl.records.names import check_name
 from usl.records.manifest import build_manifest, dataset_metadata, publish_dataset, usl_version
+from usl.records.names import check_name
 from usl.records.shards import ShardWriter
 from usl.records.storage_faults import storage_faults
 from usl.records.tempfiles import process_token

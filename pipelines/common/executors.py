@@ -10,7 +10,8 @@ from __future__ import annotations
 
 import multiprocessing as mp
 from collections import deque
-from typing import Any, Callable, Iterable, Iterator, TypeVar
+from collections.abc import Callable, Iterable, Iterator
+from typing import Any, TypeVar
 
 from usl.errors import UslError
 
@@ -26,7 +27,7 @@ class LocalExecutor:
         self.workers, self.initializer = workers, initializer
         self.pool = None
 
-    def __enter__(self) -> "LocalExecutor":
+    def __enter__(self) -> LocalExecutor:
         if self.workers > 1:
             self.pool = mp.get_context("spawn").Pool(self.workers, initializer=self.initializer)
         else:
@@ -75,7 +76,7 @@ class RayExecutor:
         self.ray, self.address, self.initializer = ray, address, initializer
         self.started = False
 
-    def __enter__(self) -> "RayExecutor":
+    def __enter__(self) -> RayExecutor:
         if not self.ray.is_initialized():
             try:
                 self.ray.init(address=self.address, include_dashboard=False, log_to_driver=False)

@@ -8,8 +8,8 @@ or how long the scene will be.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 from usl.records.shards import FrameSink
 from usl.records.tempfiles import set_process_token

@@ -26,8 +26,8 @@ from pipelines.common import (
 )
 from usl.cli.common import make_parser
 from usl.cli.common import resolution as parse_size
-from usl.records import load_manifest
 from usl.errors import UslError
+from usl.records import load_manifest
 
 from .metadata import read_camera_csv, read_split_csv
 from .paths import INPUT_FORMATS

@@ -119,7 +119,7 @@ def trajectory_categories(frames: list[ConvertedFrame]) -> dict[int, int]:
     """Instance id -> majority NYU40 label over all its labelled pixels (ties: smaller id)."""
     totals: dict[int, np.ndarray] = {}
     for frame in frames:
-        for instance_id, votes in zip(frame.vote_ids.tolist(), frame.votes):
+        for instance_id, votes in zip(frame.vote_ids.tolist(), frame.votes, strict=True):
             totals[instance_id] = totals.get(instance_id, 0) + votes
     return {i: int(np.argmax(v[1:])) + 1 for i, v in totals.items() if v[1:].sum() > 0}
 

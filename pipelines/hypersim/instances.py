@@ -99,7 +99,7 @@ def instance_entries(labels: np.ndarray, depth: np.ndarray | None) -> list[dict[
     rles = mask_utils.frPyObjects(
         [
             {"size": [height, width], "counts": _rle_counts(starts[a:b], ends[a:b], flat.size)}
-            for a, b in zip(bounds[:-1], bounds[1:])
+            for a, b in zip(bounds[:-1], bounds[1:], strict=True)
         ],
         height,
         width,

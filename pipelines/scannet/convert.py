@@ -10,21 +10,22 @@ encoded rows go to the build's ``frame_sink`` one by one, so memory does not gro
 from __future__ import annotations
 
 from collections import Counter, defaultdict
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any
 
 import numpy as np
 from pycocotools import mask as mask_utils
 
 from pipelines.common import frame_sink
-from usl.records import SceneRecord, Skip, encode_depth, frame_row, make_instance
 from usl.errors import UslError
+from usl.records import SceneRecord, Skip, encode_depth, frame_row, make_instance
 
+from .exported import ExportedScan
 from .grid import OutputGrid
 from .masks import Detection, FrameView, MaskSource, ScanMasks
-from .exported import ExportedScan
 from .scan import Scan, rigid_pose
 from .sens import SensScan
 from .tracker import IouTracker, SourceIdTracker, Track, TrackerConfig
@@ -154,7 +155,7 @@ def scene_frames(scan: Scan, tracked: TrackedScan, grid: OutputGrid, options: Co
     by_frame: dict[int, list[tuple[int, int, dict]]] = defaultdict(list)
     for track in tracked.objects:
         category = track.category_id
-        for frame, det in zip(track.frames, track.detections):
+        for frame, det in zip(track.frames, track.detections, strict=True):
             by_frame[frame].append((track.track_id, category, det.rle))
     for index, pose in tracked.poses.items():
         observations = sorted(by_frame.get(index, []), key=lambda o: o[0])

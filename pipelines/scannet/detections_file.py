@@ -22,9 +22,10 @@ import json
 import math
 import re
 from collections import defaultdict
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any
 
 from data_specs import coco_category_ids
 from usl.errors import UslError
@@ -152,7 +153,7 @@ class DetectionsFileSource:
     coco_to_category: tuple[tuple[int, int], ...]  # (COCO id, dataset category id)
     contiguous_ids: bool = False
 
-    def open_scan(self, scan: ScanInfo) -> "ScanDetections":
+    def open_scan(self, scan: ScanInfo) -> ScanDetections:
         cache = Path(self.cache_dir)
         sources = json.loads((cache / SOURCES_FILE).read_text())["results"]
         path = cache / f"{scan.scene_id}.jsonl"

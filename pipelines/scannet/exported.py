@@ -15,8 +15,15 @@ import numpy as np
 
 from usl.errors import UslError
 
-from .scan import Calibration, check_aspect, check_registered, decode_color, depth_metres, encoded_image_size
-from .scan import half_pixel_intrinsics
+from .scan import (
+    Calibration,
+    check_aspect,
+    check_registered,
+    decode_color,
+    depth_metres,
+    encoded_image_size,
+    half_pixel_intrinsics,
+)
 
 COLOR_SUFFIXES = (".jpg", ".jpeg", ".png")
 EXPORT_DEPTH_SHIFT = 1000.0  # SensReader writes the stored uint16 values (millimetres) unchanged
@@ -124,7 +131,7 @@ class ExportedScan:
     def close(self) -> None:
         """Nothing is held open between frames."""
 
-    def __enter__(self) -> "ExportedScan":
+    def __enter__(self) -> ExportedScan:
         return self
 
     def __exit__(self, *exc: object) -> None:

@@ -57,7 +57,7 @@ class OutputGrid:
     depth_index: np.ndarray  # (H*W,) flat index into the depth image, -1 where depth does not cover
 
     @classmethod
-    def for_scan(cls, calibration: Calibration, size: tuple[int, int] | None) -> "OutputGrid":
+    def for_scan(cls, calibration: Calibration, size: tuple[int, int] | None) -> OutputGrid:
         """The grid of ``size`` (width, height), or of the colour camera when ``size`` is None."""
         cw, ch = calibration.color_size
         width, height = size if size is not None else (cw, ch)

@@ -9,8 +9,9 @@ the colour image's pixel frame: any resolution covering the whole colour image, 
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Callable, Protocol
+from typing import Any, Protocol
 
 import numpy as np
 

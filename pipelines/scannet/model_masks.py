@@ -94,16 +94,16 @@ class SegmenterSource:
         frames: dict[str, list[dict[str, Any]]] = {}
         for start in range(0, len(indices), self.batch_size):
             batch = indices[start : start + self.batch_size]
-            for index, found in zip(batch, segmenter([scan.color(i) for i in batch])):
+            for index, found in zip(batch, segmenter([scan.color(i) for i in batch]), strict=True):
                 keep = [
                     k
-                    for k, (category, score) in enumerate(zip(found.category_ids, found.scores))
+                    for k, (category, score) in enumerate(zip(found.category_ids, found.scores, strict=True))
                     if int(category) in kept and score >= self.min_score
                 ]
                 rles = encode_masks(found.masks[keep])
                 frames[str(index)] = [
                     {"category_id": int(found.category_ids[k]), "score": float(found.scores[k]), "counts": r["counts"]}
-                    for k, r in zip(keep, rles)
+                    for k, r in zip(keep, rles, strict=True)
                 ]
         return frames
 

@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 from collections import Counter, defaultdict
+from collections.abc import Iterable
 from dataclasses import dataclass
-from typing import Iterable
+from itertools import pairwise
 
 
 @dataclass(frozen=True)
@@ -38,5 +39,5 @@ def tracking_quality(observations: Iterable[tuple[int, int, int]]) -> TrackingQu
     switches = 0
     for seq in by_truth.values():
         seq.sort()
-        switches += sum(1 for (_, a), (_, b) in zip(seq, seq[1:]) if a != b)
+        switches += sum(1 for (_, a), (_, b) in pairwise(seq) if a != b)
     return TrackingQuality(majority / total if total else 1.0, switches, len(by_track), len(by_truth))

@@ -91,7 +91,7 @@ class ScanNetLabelsSource:
     label_map: str  # scannetv2-labels.combined.tsv
     categories: tuple[tuple[int, str], ...]  # (dataset category id, name)
 
-    def open_scan(self, scan: ScanInfo) -> "ScanLabels":
+    def open_scan(self, scan: ScanInfo) -> ScanLabels:
         path = Path(scan.path)
         scan_dir = path if path.is_dir() else path.parent
         return ScanLabels(

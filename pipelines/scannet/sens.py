@@ -16,8 +16,15 @@ import numpy as np
 
 from usl.errors import UslError
 
-from .scan import Calibration, check_aspect, check_registered, decode_color, depth_metres, encoded_image_size
-from .scan import half_pixel_intrinsics
+from .scan import (
+    Calibration,
+    check_aspect,
+    check_registered,
+    decode_color,
+    depth_metres,
+    encoded_image_size,
+    half_pixel_intrinsics,
+)
 
 SENS_VERSION = 4
 COLOR_CODECS = {-1: "unknown", 0: "raw", 1: "png", 2: "jpeg"}
@@ -189,7 +196,7 @@ class SensScan:
             os.close(self._fd)
             self._fd = -1
 
-    def __enter__(self) -> "SensScan":
+    def __enter__(self) -> SensScan:
         return self
 
     def __exit__(self, *exc: object) -> None:

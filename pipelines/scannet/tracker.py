@@ -11,8 +11,9 @@ Tracks with at least ``min_track_frames`` observations become objects.
 from __future__ import annotations
 
 from collections import defaultdict
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Protocol, Sequence
+from typing import Protocol
 
 import numpy as np
 from pycocotools import mask as mask_utils
@@ -106,7 +107,9 @@ class IouTracker:
             iou = np.where(same.reshape(iou.shape), iou, 0.0)
         cost = np.where(iou >= self.config.iou_threshold, 1.0 - iou, FORBIDDEN)
         rows, cols = linear_sum_assignment(cost) if cost.size else (np.zeros(0, int), np.zeros(0, int))
-        assigned: dict[int, Track] = {int(r): active[int(c)] for r, c in zip(rows, cols) if cost[r, c] < FORBIDDEN}
+        assigned: dict[int, Track] = {
+            int(r): active[int(c)] for r, c in zip(rows, cols, strict=True) if cost[r, c] < FORBIDDEN
+        }
         ids = []
         for k, det in enumerate(detections):
             track = assigned.get(k)

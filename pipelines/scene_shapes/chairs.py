@@ -6,7 +6,7 @@ upholstered armchairs 0.40-0.47 m, counter/bar stools 0.60-0.78 m.
 
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 
@@ -222,7 +222,7 @@ def cantilever(rng: Rng) -> list[Part]:
         [x, seat_top + back_h, z_rear - back_h * np.tan(lean)],
     ]
     parts: list[Part] = []
-    for start, end in zip(path[:-1], path[1:]):
+    for start, end in zip(path[:-1], path[1:], strict=True):
         segment = tube(start, end, radius)
         parts += [segment, mirrored_x(segment)]
     parts.append(tube([-x, radius, z_floor_back], [x, radius, z_floor_back], radius))

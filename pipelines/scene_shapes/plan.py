@@ -54,7 +54,7 @@ def split_models(refs: list[ModelRef], fractions: list[tuple[str, float]], seed:
         pool = sorted((r for r in refs if r.category == category), key=lambda r: r.source_id)
         order = np.random.default_rng(np.random.SeedSequence([seed, _MODEL_STREAM, c])).permutation(len(pool))
         start = 0
-        for (name, _), count in zip(fractions, split_counts(len(pool), [f for _, f in fractions])):
+        for (name, _), count in zip(fractions, split_counts(len(pool), [f for _, f in fractions]), strict=True):
             splits[name] += [pool[i] for i in order[start : start + count]]
             start += count
     return splits
@@ -66,7 +66,7 @@ def plan_shards(refs: list[ModelRef], plan: PlanConfig, scene_config: SceneConfi
     models = split_models(refs, list(plan.fractions), plan.seed)
     scene_counts = split_counts(plan.num_scenes, [f for _, f in plan.fractions])
     shards: list[ShardPlan] = []
-    for s, (name, count) in enumerate(zip(names, scene_counts)):
+    for s, (name, count) in enumerate(zip(names, scene_counts, strict=True)):
         if count and not models[name]:
             raise UslError(
                 f"split {name!r} has {count} scenes but no models; use more models "

@@ -12,9 +12,9 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from usl.errors import UslError
 from usl.geometry.cameras import transform_points
 from usl.records import SceneRecord, Skip, encode_depth, encode_image, frame_row, make_instance, object_row
-from usl.errors import UslError
 
 from .layout import RigConfig, SceneLayout
 from .mesh_root import MeshNormalisation, load_mesh_model
@@ -71,7 +71,7 @@ def build_scene(unit: SceneUnit) -> SceneRecord:
             )
     transforms = [p.world_from_object() for p in layout.objects]
     views = render_scene(
-        [PlacedModel(m, t) for m, t in zip(models, transforms)],
+        [PlacedModel(m, t) for m, t in zip(models, transforms, strict=True)],
         layout.K,
         list(layout.cam_to_world),
         config.rig.resolution,
@@ -80,7 +80,7 @@ def build_scene(unit: SceneUnit) -> SceneRecord:
     )
     size = config.rig.resolution
     frames = []
-    for view_id, (view, pose) in enumerate(zip(views, layout.cam_to_world)):
+    for view_id, (view, pose) in enumerate(zip(views, layout.cam_to_world, strict=True)):
         instances = []
         for index, placement in enumerate(layout.objects, start=1):
             mask = view.instance_index == index
@@ -110,6 +110,6 @@ def build_scene(unit: SceneUnit) -> SceneRecord:
             transform_vertices(m.vertices, t),
             m.faces,
         )
-        for p, m, t in zip(layout.objects, models, transforms)
+        for p, m, t in zip(layout.objects, models, transforms, strict=True)
     ]
     return SceneRecord(unit.scene_id, frames, objects)

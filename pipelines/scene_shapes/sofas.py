@@ -6,8 +6,8 @@ two-seaters) to 2.1 m (three-seaters), L-shaped chaises reach 1.6 m deep.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 import numpy as np
 
@@ -97,7 +97,7 @@ def build_sofa(rng: Rng, spec: SofaSpec) -> list[Part]:
     if spec.arms != "none":
         # With a chaise the arm on its side (-x) runs along the chaise.
         arm_depths = [depth + chaise_extra, depth] if spec.chaise else [depth, depth]
-        for side, arm_depth in zip((-1.0, 1.0), arm_depths):
+        for side, arm_depth in zip((-1.0, 1.0), arm_depths, strict=True):
             x = side * 0.5 * (width - arm_w)
             z = -0.5 * depth + 0.5 * arm_depth
             parts.append(rounded_box([arm_w, arm_top - legs, arm_depth], [x, 0.5 * (arm_top + legs), z], soft))

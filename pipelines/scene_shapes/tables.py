@@ -6,7 +6,7 @@ Tops stay within 1.6 m so a pair of objects fits in view at the paper's 1.5-1.9 
 
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 

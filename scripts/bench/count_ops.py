@@ -36,7 +36,6 @@ from train import bench_step  # scripts/bench/train.py: the same step and batche
 from usl.utils.compiled import torch_paths_only
 from usl.utils.op_count import count_ops, format_report
 
-
 SIZE = {"tiny": (128, 128), "tiny_long": (128, 128), "hypersim": (192, 256), "scannet": (242, 324)}
 OBJECTS = {"tiny": 2, "tiny_long": 2, "hypersim": 20, "scannet": 8}
 

@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import statistics
 import time
+from functools import partial
 
 import torch
 
@@ -78,14 +79,14 @@ def main() -> None:
         for threshold in args.thresholds:
             for batched in (False, True):
                 if batched:
-                    ours = lambda: batched_nms(boxes, scores, groups, threshold)  # noqa: E731
-                    pure = lambda: _pure_torch_batched_nms(boxes, scores, groups, threshold)  # noqa: E731
+                    ours = partial(batched_nms, boxes, scores, groups, threshold)
+                    pure = partial(_pure_torch_batched_nms, boxes, scores, groups, threshold)
                     # torchvision's own batched_nms orders equal scores arbitrarily: compare the kept sets
-                    theirs = tv and (lambda: tv.batched_nms(boxes, scores, groups, threshold))
+                    theirs = tv and partial(tv.batched_nms, boxes, scores, groups, threshold)
                 else:
-                    ours = lambda: nms(boxes, scores, threshold)  # noqa: E731
-                    pure = lambda: _pure_torch_nms(boxes, scores, threshold)  # noqa: E731
-                    theirs = tv and (lambda: tv.nms(boxes, scores, threshold))
+                    ours = partial(nms, boxes, scores, threshold)
+                    pure = partial(_pure_torch_nms, boxes, scores, threshold)
+                    theirs = tv and partial(tv.nms, boxes, scores, threshold)
                 case = f"{'batched' if batched else 'nms'} n={count} t={threshold}"
                 t_ours = timed(ours, device, args.repeats)
                 line = f"{case:>26} {t_ours * 1e3:8.2f}ms"

@@ -20,7 +20,6 @@ import statistics
 import time
 
 import torch
-
 from train import DEFAULT_OBJECTS, DEFAULT_SIZE  # scripts/bench/train.py, which puts the checkout on sys.path
 
 from tests.data.synthetic_samples import synthetic_config, synthetic_sample  # noqa: E402

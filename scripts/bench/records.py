@@ -15,6 +15,7 @@ import argparse
 import os
 import random
 import time
+from functools import partial
 
 import pyarrow.parquet as pq
 import torch
@@ -86,7 +87,7 @@ def verification_cost(dataset: FiveViewSamples) -> str:
 
     lines = []
     for decode, what in ((False, "Parquet read only"), (True, "read + decode to tensors")):
-        plain, checked = cpu_seconds(lambda: read(False, decode)), cpu_seconds(lambda: read(True, decode))
+        plain, checked = cpu_seconds(partial(read, False, decode)), cpu_seconds(partial(read, True, decode))
         lines.append(f"page checksums, {what}: {plain:.3f} s -> {checked:.3f} s CPU (x{checked / plain:.3f})")
     megabytes = sum(os.path.getsize(f) for f in files) / 2**20
     seconds = cpu_seconds(lambda: [sha256_file(f) for f in files])

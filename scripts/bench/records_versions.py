@@ -11,8 +11,8 @@ import random
 import time
 from bisect import bisect_right
 
-from usl.records import RecordsDataset
 from usl.data import CategoryIndex, decode_frame
+from usl.records import RecordsDataset
 
 
 def base_read(shard, first, offsets):  # usl 0.1's read_rows: no upgrade step

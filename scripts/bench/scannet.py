@@ -39,12 +39,19 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))  # the checkout: it
 
 from data_specs import load_dataset_spec  # noqa: E402
 from pipelines.common import BuildOptions, ShardPlan, run_build  # noqa: E402
-from pipelines.scannet.convert import ConvertOptions, ScanUnit, build_scene, scene_frames, track_scan  # noqa: E402
+from pipelines.scannet.convert import (  # noqa: E402
+    ConvertOptions,
+    ScanUnit,
+    build_scene,
+    open_scan,  # noqa: E402
+    scene_frames,
+    track_scan,
+)
 from pipelines.scannet.detections_file import DetectionsFileSource, split_detections  # noqa: E402
 from pipelines.scannet.grid import OutputGrid  # noqa: E402
 from pipelines.scannet.quality import tracking_quality  # noqa: E402
-from pipelines.scannet.convert import open_scan  # noqa: E402
 from pipelines.scannet.scannet_labels import ScanNetLabelsSource  # noqa: E402
+from pipelines.scannet.tracker import TrackerConfig  # noqa: E402
 from tests.pipelines.scannet.synthetic_scan import (  # noqa: E402
     Box,
     SyntheticFrame,
@@ -52,7 +59,6 @@ from tests.pipelines.scannet.synthetic_scan import (  # noqa: E402
     detections_from_instances,
     write_sens,
 )
-from pipelines.scannet.tracker import TrackerConfig  # noqa: E402
 
 SPEC = load_dataset_spec("scannet")
 MAPPING = tuple((int(c["coco_id"]), int(c["id"])) for c in SPEC["categories"])
@@ -215,7 +221,9 @@ def quality(scan_dir: Path, label_map: Path, stride: int) -> None:
         opts = ConvertOptions(stride=stride)
         tracked = track_scan(scan, masks, grid, opts)
         seconds = time.process_time() - start
-    observations = [(f, t.track_id, d.source_id) for t in tracked.tracks for f, d in zip(t.frames, t.detections)]
+    observations = [
+        (f, t.track_id, d.source_id) for t in tracked.tracks for f, d in zip(t.frames, t.detections, strict=True)
+    ]
     print(
         f"{scene_id} stride {stride}: {tracking_quality(observations).describe()}; {len(tracked.objects)} objects "
         f"of >= {opts.tracker.min_track_frames} frames; {len(tracked.poses)} frames in {seconds:.1f} s"

@@ -29,16 +29,16 @@ from pathlib import Path
 import torch
 from tqdm import tqdm
 
-from usl.model.config import LayoutRange
 from usl.config import load_config
 from usl.data import CategoryIndex, MultiViewDataset, SampleKey
 from usl.evaluation.baselines import spec_baselines
-from usl.evaluation.scene import EvalConfig
-from usl.evaluation.types import EvalInput
 from usl.evaluation.evaluate import dataset_spec, run_evaluation
 from usl.evaluation.report import write_report
+from usl.evaluation.scene import EvalConfig
+from usl.evaluation.types import EvalInput
 from usl.geometry import MeshTemplate, cube_to_frustum, ico_sphere
 from usl.losses import combine_losses
+from usl.model.config import LayoutRange
 from usl.model.multiview_loss import REGULARIZERS, multiview_silhouette_loss, shape_regularizers
 from usl.model.outputs import ObjectPredictions
 from usl.records import RecordsDataset

@@ -28,8 +28,8 @@ and in two orders that use the truth:
 from __future__ import annotations
 
 import torch
-
 from diagnostic_inputs import input_frames, load_model, parse_args
+
 from usl.geometry import Meshes
 from usl.metrics.masks import mask_iou
 from usl.model.detector.mask_head import paste_masks_in_image, select_class_masks

@@ -17,8 +17,8 @@ The pictures show the same; this puts numbers on it and says which stage to blam
 from __future__ import annotations
 
 import torch
-
 from diagnostic_inputs import input_frames, load_model, parse_args
+
 from usl.geometry import faces_on_each_edge, uniform_laplacian
 from usl.losses import normal_consistency
 
@@ -52,14 +52,14 @@ def main() -> None:
     for frame, _ in input_frames(args, cfg.data.max_size):
         _, features = model._backbone([frame])
         shape = model.objects(features, [frame.boxes], [frame.labels], [frame.K]).shape
-        for values, verts in zip(per_stage, shape.stage_verts):
+        for values, verts in zip(per_stage, shape.stage_verts, strict=True):
             values.append(roughness(verts.float(), head.faces, pairs, laplacian))
     sphere = roughness(head.sphere_verts[None], head.faces, pairs, laplacian)[0]
     header = f"| {args.data} ({args.split}, {args.input_views}), true boxes, in the cube"
     print(f"{header} | normal consistency ↓ | mean ‖Lv‖ | objects |")
     print("|:---|:---:|:---:|:---:|")
     print(f"| ico-sphere (level {cfg.model.shape.ico_level}) | {sphere[0]:.3f} | {sphere[1]:.3f} | – |")
-    for name, values in zip(names, per_stage):
+    for name, values in zip(names, per_stage, strict=True):
         table = torch.cat(values)
         means = table.mean(dim=0)
         print(f"| after {name} | {means[0]:.3f} | {means[1]:.3f} | {len(table)} |")

@@ -14,8 +14,8 @@ holds the Chamfer back.
 from __future__ import annotations
 
 import torch
-
 from diagnostic_inputs import input_frames, load_model, parse_args
+
 from usl.evaluation.targets import true_meshes_in_camera
 from usl.geometry import Meshes
 from usl.geometry.sampling import sample_points_from_meshes

@@ -18,9 +18,9 @@ import argparse
 import hashlib
 import statistics
 import sys
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Sequence
 
 from usl.config import Config, ConfigError, dump_config, load_config
 

@@ -16,11 +16,13 @@ import argparse
 import json
 import re
 import sys
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 from table1_plan import ROWS, Row  # a sibling script: python puts this folder on sys.path
+
 from usl.evaluation.report import COLUMNS, Column, mean_std, mean_std_cell
 
 TABLE_COLUMNS: list[Column] = COLUMNS["scene_shapes"]  # usl-eval's Table 1 columns: titles, scales, decimals

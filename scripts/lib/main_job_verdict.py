@@ -125,7 +125,9 @@ def main(folder: str) -> int:
         "num_input_views": {str(s): b["num_input_views"] for s, b in builds.items()},
         "checkpoint": next(iter(builds.values())).get("checkpoint"),
         "rows": {
-            name: {metric: dict(zip(("mean", "std"), mean_std(v)), values=v) for metric, v in row.items() if v}
+            name: {
+                metric: dict(zip(("mean", "std"), mean_std(v), strict=True), values=v) for metric, v in row.items() if v
+            }
             for name, row in values.items()
         },
         "claim_holds": ok,

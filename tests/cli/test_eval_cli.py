@@ -7,9 +7,9 @@ import json
 import pytest
 
 from tests.evaluation.eval_helpers import build_dataset, tiny_checkpoint
-from usl.evaluation.views import FurthestFraction, view_selection
 from usl.cli.evaluate import main
 from usl.evaluation.evaluate import dataset_spec
+from usl.evaluation.views import FurthestFraction, view_selection
 
 ALL_ROWS = "random,fixed,model,detections,layout_only,sphere_true_depth,model_true_depth"
 

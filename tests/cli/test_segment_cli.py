@@ -32,7 +32,7 @@ def test_usl_segment_writes_what_detectron2_predicts(tmp_path, detectron2_weight
     theirs = run["images"]["scannet.png"]
     assert len(first) == len(theirs)
     by_score = sorted(first, key=lambda r: -r["score"])
-    for ours, oracle in zip(by_score, sorted(theirs, key=lambda d: -d["score"])):
+    for ours, oracle in zip(by_score, sorted(theirs, key=lambda d: -d["score"]), strict=True):
         assert ours["category_id"] == coco_category_ids()[oracle["class"]]
         x0, y0, x1, y1 = oracle["box"]
         np.testing.assert_allclose(ours["bbox"], [x0, y0, x1 - x0, y1 - y0], atol=0.05)

@@ -159,7 +159,7 @@ def _candidates(page: Page, section: str) -> tuple[dict[str, argparse.ArgumentPa
     return parsers, other
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def every_option() -> frozenset[str]:
     """Every option of every console script (and of its subcommands)."""
     options: set[str] = set()

@@ -40,7 +40,7 @@ class Invocation:
     args: list[str]
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def console_scripts() -> dict[str, str]:
     """Console script -> the module of its ``main``, from pyproject.toml's ``[project.scripts]``."""
     text = (REPO / "pyproject.toml").read_text()

@@ -105,7 +105,7 @@ def test_the_checks_find_what_they_look_for(tmp_path, keys):
     }
     for kind, lines in expected.items():
         assert len(found[kind]) == len(lines), (kind, found[kind])
-        for problem, line in zip(sorted(found[kind], key=_line_number), lines):
+        for problem, line in zip(sorted(found[kind], key=_line_number), lines, strict=True):
             assert line in problem, (kind, problem)
 
 

@@ -18,7 +18,6 @@ import torch
 
 from tests.data.synthetic_records import build_synthetic_records
 from tests.engine.test_train import FAST
-
 from usl.engine.checkpoint import load_model, read_checkpoint
 from usl.engine.run_log import read_metrics
 
@@ -51,7 +50,7 @@ def node_command(endpoint: str, rdzv_id: str, out: Path, records: Path) -> list[
     split = words.index(MODULE[0])
     launcher, training = words[1:split], words[split + 2 :]
     assert words[0] == "torchrun" and words[split : split + 2] == MODULE
-    flags = dict(zip(launcher[::2], launcher[1::2]))
+    flags = dict(zip(launcher[::2], launcher[1::2], strict=True))
     assert len(launcher) == 2 * len(flags) and flags.keys() == {
         "--nnodes",
         "--nproc_per_node",

@@ -47,7 +47,7 @@ def test_a_factor_naming_no_parameter_is_an_error_naming_it():
 
 MODEL = [
     "model.categories=[a, b]",
-    *(f"model.layout_range.{k}={v}" for k, v in zip(("z0", "z1", "rho0", "rho1"), (1, 9, 0.1, 2))),
+    *(f"model.layout_range.{k}={v}" for k, v in zip(("z0", "z1", "rho0", "rho1"), (1, 9, 0.1, 2), strict=True)),
 ]
 
 

@@ -41,7 +41,7 @@ def test_equal_replicas_give_every_rank_the_same_digests_and_drifted_ones_stop_b
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
     mp.start_processes(_rank, args=(port, str(tmp_path)), nprocs=2, start_method="spawn")
-    equal, drifted = zip(*(json.loads((tmp_path / f"{rank}.json").read_text()) for rank in range(2)))
+    equal, drifted = zip(*(json.loads((tmp_path / f"{rank}.json").read_text()) for rank in range(2)), strict=True)
     torch.manual_seed(0)
     expected = parameter_digest(nn.Conv2d(3, 4, 3))  # NCHW here: the digest reads values, not layout
     assert list(equal) == [{"digests": [expected, expected]}] * 2

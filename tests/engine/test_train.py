@@ -12,14 +12,13 @@ import pytest
 import torch
 
 from tests.data.synthetic_records import build_synthetic_records
-
+from usl.cli.train import main
+from usl.config import load_config
 from usl.engine.checkpoint import CheckpointError, load_model, read_checkpoint
 from usl.engine.distributed import DistInfo
 from usl.engine.run_log import read_metrics
 from usl.engine.skip_guard import TooManySkippedSteps
-from usl.cli.train import main
 from usl.engine.train import Meter, Trainer, seed_everything
-from usl.config import load_config
 from usl.model.outputs import ObjectPredictions
 from usl.model.usl_model import USLModel
 
@@ -56,7 +55,7 @@ def test_resume_reproduces_the_uninterrupted_run(records, tmp_path):
     assert main(["--resume", str(tmp_path / "cut" / "checkpoints" / "model_0000003.pt"), "optim.max_iter=6"]) == 0
     full, resumed = read_metrics(tmp_path / "full"), read_metrics(tmp_path / "cut")
     assert [r["iteration"] for r in resumed] == [1, 2, 3, 4, 5, 6] and [r["epoch"] for r in full][-1] == 1
-    for a, b in zip(full, resumed):
+    for a, b in zip(full, resumed, strict=True):
         for key in ("loss", "l3d", "det/loss_cls", "det/loss_rpn_cls", "stat/l_dist", "grad_norm"):
             assert a[key] == pytest.approx(b[key], rel=1e-6, abs=1e-9), (a["iteration"], key)
     end_full = _weights(tmp_path / "full" / "checkpoints" / "model_0000006.pt")
@@ -239,7 +238,11 @@ def test_clipping_caps_the_step_and_the_log_shows_when(records, tmp_path):
         batch = [trainer.loader.dataset[key] for key in next(iter(trainer.sampler))]
         before = [p.detach().clone() for p in trainer.step.params]
         values = trainer.step(batch)
-        moved[name] = torch.cat([(p.detach() - b).flatten() for p, b in zip(trainer.step.params, before)]).norm().item()
+        moved[name] = (
+            torch.cat([(p.detach() - b).flatten() for p, b in zip(trainer.step.params, before, strict=True)])
+            .norm()
+            .item()
+        )
         norms[name] = values["grad_norm"].item()  # the step hands back 0-d tensors (no device read per step)
         assert values["clipped"] == (1.0 if name == "capped" else 0.0)
     assert norms["capped"] == pytest.approx(norms["free"], rel=1e-5)  # the same model, batch and gradient

@@ -11,6 +11,8 @@ from pathlib import Path
 import pytest
 import yaml
 
+from usl.cli.train import main as train_main
+from usl.cli.train import parse_args
 from usl.config import (
     CONFIG_DIR,
     Config,
@@ -22,11 +24,9 @@ from usl.config import (
     save_config,
     to_dict,
 )
+from usl.config_docs import field_docs, iter_keys
 from usl.data.config import DataConfig
 from usl.model.config import ModelConfig
-from usl.config_docs import field_docs, iter_keys
-from usl.cli.train import main as train_main
-from usl.cli.train import parse_args
 from usl.model.detector import DetectorConfig
 
 RECIPE_NAMES = sorted(path.stem for path in CONFIG_DIR.glob("*.yaml"))
@@ -284,7 +284,9 @@ def test_every_key_a_recipe_sets_changes_its_config(name, tmp_path):
         for parent in parents:
             nodes.append(nodes[-1][parent])
         del nodes[-1][leaf]
-        for node, parent in reversed(list(zip(nodes, parents))):  # an empty mapping would clear the key
+        for node, parent in reversed(
+            list(zip(nodes[:-1], parents, strict=True))
+        ):  # an empty mapping would clear the key
             if not node[parent]:
                 del node[parent]
         (tmp_path / "trimmed.yaml").write_text(yaml.safe_dump(trimmed))

@@ -91,7 +91,9 @@ def build_scene(unit: SceneUnit) -> SceneRecord:
     frames = []
     for view, pose in enumerate(camera_poses(unit.num_views)):
         color, masks, depth = render_truth(objects, pose)
-        instances = [make_instance(iid, cid, m, depth) for (iid, cid, _, _), m in zip(objects, masks) if m.any()]
+        instances = [
+            make_instance(iid, cid, m, depth) for (iid, cid, _, _), m in zip(objects, masks, strict=True) if m.any()
+        ]
         frames.append(
             frame_row(
                 unit.scene_id, view, encode_image(color), intrinsics(), pose, instances, SIZE, SIZE, encode_depth(depth)
@@ -161,9 +163,9 @@ def tiny_checkpoint(
 ) -> Path:
     """A randomly initialised tiny USL model saved like a training run (categories of scene_shapes by
     default), as if at ``iteration``, with config ``overrides``."""
-    from usl.model.config import LayoutRange
     from usl.config import load_config, to_dict
     from usl.engine.checkpoint import write_run_checkpoint
+    from usl.model.config import LayoutRange
     from usl.model.usl_model import USLModel
 
     spec = load_dataset_spec("scene_shapes")

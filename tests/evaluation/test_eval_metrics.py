@@ -18,10 +18,10 @@ from data_specs import load_dataset_spec
 from tests.evaluation.eval_helpers import PerfectPredictor, build_dataset, render_truth
 from usl.data.frames import CategoryIndex, decode_frame
 from usl.evaluation.baselines import spec_baselines
-from usl.evaluation.scene import EvalConfig
-from usl.evaluation.types import EvalInput
 from usl.evaluation.evaluate import run_evaluation
 from usl.evaluation.report import markdown_table, write_report
+from usl.evaluation.scene import EvalConfig
+from usl.evaluation.types import EvalInput
 from usl.records import RecordsDataset, decode_mask, frame_pose
 
 FAST = dict(num_samples_3d=400)
@@ -79,7 +79,7 @@ def test_view_metrics_match_pyrender_reprojection(dataset):
         pose0 = frame_pose(frames[0])
         world = [
             (int(i), 0, v.double().numpy() @ pose0[:3, :3].T + pose0[:3, 3], pred.faces.numpy())
-            for i, v in zip(pred.instance_ids, pred.verts)
+            for i, v in zip(pred.instance_ids, pred.verts, strict=True)
         ]
         per_object = {r["instance_id"]: ([], [], []) for r in rows}
         for f in frames[1:]:

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import pytest
 
-from usl.evaluation.views import AllOtherViews, FurthestFraction, select_input_views, view_selection
 from usl.errors import UslError
+from usl.evaluation.views import AllOtherViews, FurthestFraction, select_input_views, view_selection
 
 
 def test_input_view_patterns():

@@ -19,9 +19,10 @@ import re
 import subprocess
 import threading
 import uuid
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Iterator
+from typing import Any
 
 import pyarrow.parquet as pq
 import pytest
@@ -89,7 +90,7 @@ def write_faults(monkeypatch: pytest.MonkeyPatch) -> Callable[..., WriteFaults]:
         def __getattr__(self, name: str) -> Any:
             return getattr(self._inner, name)
 
-        def __enter__(self) -> "FailingFile":
+        def __enter__(self) -> FailingFile:
             return self
 
         def __exit__(self, *exc: Any) -> None:

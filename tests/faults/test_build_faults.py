@@ -10,11 +10,12 @@ from __future__ import annotations
 
 import json
 import shutil
+from functools import partial
 from pathlib import Path
 
 import pytest
-from tests.faults.outputs import FAULTS, bytes_lost, finished_files, one_line_error, temp_files
 
+from tests.faults.outputs import FAULTS, bytes_lost, finished_files, one_line_error, temp_files
 from tests.faults.small_build import build
 from usl.records.build_state import IDENTITY_KEYS
 
@@ -82,7 +83,7 @@ def test_every_write_of_a_build_fails_cleanly(
         out = tmp_path / f"fault-{k}"
         shutil.copytree(half_built, out)
         before = finished_files(out)
-        fail_write(k, code, site, lambda: build(out))
+        fail_write(k, code, site, partial(build, out))
         assert bytes_lost(before, finished_files(out)) == 0, site
         survive(out, fault, reference, capsys, fault_tally)
 

@@ -7,9 +7,9 @@ import shutil
 from pathlib import Path
 
 import pytest
+
 from tests.faults.outputs import finished_files, one_line_error
 from tests.faults.small_build import build
-
 from usl.cli.records import main as records_main
 from usl.records.schema import shard_file
 

@@ -7,21 +7,21 @@ anywhere else under the test's folder but the inputs.
 
 from __future__ import annotations
 
-import sys
 import json
+import sys
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
 
 import pytest
-from tests.faults.outputs import one_line_error
 
 from pipelines.hypersim.cli import main as hypersim_main
 from pipelines.hypersim.metadata import CAMERA_COLUMNS, SPLIT_COLUMNS
 from pipelines.scannet.cli import main as scannet_main
 from pipelines.scene_shapes.cli import main as scene_shapes_main
-from usl.records.names import check_name, name_problem
+from tests.faults.outputs import one_line_error
 from usl.errors import UslError
+from usl.records.names import check_name, name_problem
 
 HOSTILE = {
     "folder above": "../../x",

@@ -16,7 +16,8 @@ def torch_save_like_failure() -> None:
     try:
         raise OSError(errno.ENOSPC, "No space left on device")
     except OSError:
-        raise RuntimeError("[enforce fail at inline_container.cc:672] . unexpected pos 1024 vs 980")
+        # as torch raises it: chained implicitly, the OSError only in __context__
+        raise RuntimeError("[enforce fail at inline_container.cc:672] . unexpected pos 1024 vs 980")  # noqa: B904
 
 
 def test_the_oserror_behind_a_wrapping_exception_is_found():

@@ -16,14 +16,15 @@ import shutil
 import socket
 import subprocess
 import sys
+from functools import partial
 from pathlib import Path
 
 import pytest
 import torch
-from tests.faults.outputs import FAULTS, bytes_lost, finished_files, one_line_error
 
 from tests.data.synthetic_records import build_synthetic_records
 from tests.engine.test_train import FAST as TRAIN_FAST
+from tests.faults.outputs import FAULTS, bytes_lost, finished_files, one_line_error
 from usl.cli.train import main
 
 FAST = [
@@ -96,7 +97,7 @@ def test_every_kind_of_write_of_a_training_fails_cleanly(
         out = tmp_path / f"fault-{position}"
         shutil.copytree(one_iteration, out)
         before = finished_files(out)
-        fail_write(position, code, f"training: {site}", lambda: resume(out))
+        fail_write(position, code, f"training: {site}", partial(resume, out))
         message = one_line_error(capsys.readouterr().err)
         assert fault in message and f"usl-train --resume --out {out}" in message, message
         assert (out / CHECKPOINT_1).read_bytes() == before[CHECKPOINT_1]

@@ -6,8 +6,8 @@ import pytest
 import torch
 
 from usl.geometry.kdtree_search import leaf_ranges, nearest_in_tree
-from usl.geometry.nearest import _kdtree as tree
 from usl.geometry.nearest import KDTREE_LEAF_SIZE, kdtree_indices
+from usl.geometry.nearest import _kdtree as tree
 from usl.utils import compiled
 
 pytestmark = pytest.mark.skipif(compiled.numba is None, reason="numba is not installed")

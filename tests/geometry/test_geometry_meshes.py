@@ -95,21 +95,21 @@ def test_meshes_packing_and_index_maps():
     assert meshes.num_faces_per_mesh().tolist() == [len(f) for f in faces]
     torch.testing.assert_close(meshes.verts_packed(), torch.cat(verts))
     offsets = np.cumsum([0] + counts[:-1])
-    expected_faces = torch.cat([f + int(o) for f, o in zip(faces, offsets)])
+    expected_faces = torch.cat([f + int(o) for f, o in zip(faces, offsets, strict=True)])
     assert torch.equal(meshes.faces_packed(), expected_faces)
     assert meshes.verts_packed_to_mesh_idx().tolist() == sum(([i] * c for i, c in enumerate(counts)), [])
     assert meshes.faces_packed_to_mesh_idx().tolist() == sum(([i] * len(f) for i, f in enumerate(faces)), [])
-    expected_edges = torch.cat([unique_edges(f) + int(o) for f, o in zip(faces, offsets)])
+    expected_edges = torch.cat([unique_edges(f) + int(o) for f, o in zip(faces, offsets, strict=True)])
     assert torch.equal(meshes.edges_packed(), expected_edges)
     assert meshes.num_edges_per_mesh().tolist() == [len(unique_edges(f)) for f in faces]
-    for got, want in zip(meshes.faces_list(), faces):
+    for got, want in zip(meshes.faces_list(), faces, strict=True):
         assert torch.equal(got, want)
-    for got, want in zip(meshes.verts_list(), verts):
+    for got, want in zip(meshes.verts_list(), verts, strict=True):
         assert torch.equal(got, want)
     padded = meshes.verts_padded()
     assert padded.shape == (3, max(counts), 3) and torch.equal(padded[2, : counts[2]], verts[2])
     dense_L = meshes.laplacian_packed().to_dense()
-    for f, o, c in zip(faces, offsets, counts):
+    for f, o, c in zip(faces, offsets, counts, strict=True):
         block = uniform_laplacian(c, unique_edges(f), torch.float64).to_dense()
         torch.testing.assert_close(dense_L[o : o + c, o : o + c], block)
 

@@ -35,7 +35,7 @@ def test_samples_lie_on_each_mesh_surface():
     )
     points = sample_points_from_meshes(meshes, 2000, generator=torch.Generator().manual_seed(0))
     assert points.shape == (2, 2000, 3) and points.dtype == torch.float64
-    for mesh, pts in zip((box, torus), points.numpy()):
+    for mesh, pts in zip((box, torus), points.numpy(), strict=True):
         assert _distance_to_surface(mesh, pts[:500]).max() < 1e-9
     # box samples cover every side in proportion to its area (2x1, 2x0.5, 1x0.5 pairs)
     on_side = np.abs(np.abs(points[0].numpy()) - np.array([0.5, 1.0, 0.25])) < 1e-9
@@ -146,7 +146,7 @@ def test_loop_backend_equals_the_torch_backend_and_exact_nearest_points(dtype):
         grad_x, grad_y = torch.autograd.grad((xy * 2).sum() + yx.sum(), (a, b))
         # the torch backend may pick either copy of a duplicated point: compare the copies' sum
         results[backend] = xy.detach(), yx.detach(), grad_x, grad_y[:, :25] + grad_y[:, 25:]
-    for torch_result, loop_result in zip(results["torch"], results["loop"]):
+    for torch_result, loop_result in zip(results["torch"], results["loop"], strict=True):
         torch.testing.assert_close(loop_result, torch_result)
     exact = ((x[:, :, None].double() - y[:, None].double()) ** 2).sum(-1).masked_fill(~y_valid[:, None], np.inf)
     loop_idx = NEAREST._loop_indices(x, y, x_valid, y_valid)[0]
@@ -167,9 +167,9 @@ def test_sampling_in_groups_equals_one_call_per_group_with_its_generator():
     )
     per_group = [
         sample_points_from_meshes(Meshes.from_shared_topology(part, faces), 50, torch.Generator().manual_seed(s), True)
-        for part, s in zip(batch.split(sizes), seeds)
+        for part, s in zip(batch.split(sizes), seeds, strict=True)
     ]
-    for got, expected in zip(grouped, zip(*per_group)):
+    for got, expected in zip(grouped, zip(*per_group, strict=True), strict=True):
         assert torch.equal(got, torch.cat(expected))
     with pytest.raises(ValueError, match="groups"):
         sample_points_in_groups(Meshes.from_shared_topology(batch, faces), 5, [2, 3], [None, None])

@@ -65,14 +65,14 @@ def test_predict_returns_what_the_files_hold(run_dir, photo, tmp_path):
     assert everything > 0 and all(0.0 <= o.score <= 1.0 for o in scene.objects)
     high = model.predict(photo, fov=60, score=0.5)
     assert len(high.objects) == sum(o.score >= 0.5 for o in scene.objects)  # the threshold applies
-    names = dict(zip(model.categories.ids, model.categories.names))
+    names = dict(zip(model.categories.ids, model.categories.names, strict=True))
     assert all(names[o.category_id] == o.category for o in scene.objects)  # ids are the dataset's (1-based)
     assert set(model.categories.ids) == {1, 2, 3}
 
     glb = trimesh.load(scene.export(tmp_path / "x.glb"))
     nodes = sorted(n for n in glb.geometry if n != IMAGE_NODE)
     assert len(nodes) == everything
-    for node, obj in zip(nodes, scene.objects):  # glTF axes in the API and in the file
+    for node, obj in zip(nodes, scene.objects, strict=True):  # glTF axes in the API and in the file
         np.testing.assert_allclose(glb.geometry[node].vertices, obj.mesh.vertices, atol=1e-5)
         extras = glb.graph.transforms.edge_data[("world", node)]["metadata"]
         assert extras["category_id"] == obj.category_id and extras["category"] == obj.category

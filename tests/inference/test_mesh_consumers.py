@@ -91,7 +91,7 @@ def test_open3d_keeps_the_objects_apart_in_glb_and_obj_models_and_merges_them_as
     colours = [[c / 255 for c in rgb] + [1.0] for rgb in palette(2)]
     for read, names in ((glb, [*OBJECTS, IMAGE_NODE]), (obj, OBJECTS)):
         assert [m["name"] for m in read["model"]] == names  # one named mesh per object
-        for mesh, expected, colour in zip(read["model"], verts, colours):
+        for mesh, expected, colour in zip(read["model"], verts, colours, strict=True):
             assert _rows(mesh["vertices"]) == _rows(expected) and mesh["triangles"] == 80
             np.testing.assert_allclose(mesh["base_color"], colour, atol=1e-6)
     assert glb["model"][2]["textured"] and glb["model"][2]["triangles"] == 2  # the image plane and its texture
@@ -104,7 +104,7 @@ def test_open3d_keeps_the_objects_apart_in_glb_and_obj_models_and_merges_them_as
     # PLY: one mesh, no model; the objects differ only by vertex colour
     assert ply["model"] == [] and len(ply["mesh"]["vertices"]) == 2 * len(verts[0])
     by_colour: dict[tuple[float, ...], set] = {}
-    for point, colour in zip(ply["mesh"]["vertices"], ply["mesh"]["vertex_colors"]):
+    for point, colour in zip(ply["mesh"]["vertices"], ply["mesh"]["vertex_colors"], strict=True):
         by_colour.setdefault(tuple(np.round(colour, 3)), set()).add(tuple(np.round(point, 5)))
     assert sorted(map(sorted, by_colour.values())) == sorted(sorted(_rows(v)) for v in verts)
 

@@ -13,13 +13,13 @@ import torch
 import trimesh
 
 from tests.evaluation.eval_helpers import tiny_checkpoint
+from usl.cli.predict import main
 from usl.data.frames import CategoryIndex
+from usl.errors import UslError
 from usl.evaluation.baselines import sphere_verts
 from usl.inference.gltf_scene import CAMERA_NODE, IMAGE_NODE
 from usl.inference.predict import camera_for, image_frame, model_detector, predict_images, read_image, read_intrinsics
-from usl.cli.predict import main
 from usl.model.outputs import ObjectPredictions
-from usl.errors import UslError
 
 CATEGORIES = CategoryIndex([{"id": 1, "name": "chair"}, {"id": 2, "name": "sofa"}, {"id": 3, "name": "dining table"}])
 

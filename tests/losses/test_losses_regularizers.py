@@ -5,6 +5,7 @@ import pytest
 import torch
 import trimesh
 
+from usl.config import load_config
 from usl.geometry.icosphere import ico_sphere
 from usl.geometry.meshes import Meshes
 from usl.geometry.sampling import sample_points_from_meshes
@@ -15,7 +16,6 @@ from usl.losses.regularizers import (
     normal_consistency,
     offset_l2_loss,
 )
-from usl.config import load_config
 from usl.losses.total import LossWeights, combine_losses
 
 DT = torch.float64
@@ -77,7 +77,7 @@ def test_normal_consistency_matches_trimesh_face_adjacency_angles_and_gradcheck(
         map(tuple, np.sort(sphere.face_adjacency, axis=1).tolist())
     )
     verts = torch.from_numpy(np.stack([sphere.vertices, bumpy.vertices]))
-    for mesh, value in zip((sphere, bumpy), normal_consistency(verts, faces, pairs).tolist()):
+    for mesh, value in zip((sphere, bumpy), normal_consistency(verts, faces, pairs).tolist(), strict=True):
         assert value == pytest.approx(np.mean(1.0 - np.cos(mesh.face_adjacency_angles)), abs=1e-9)
     v, f = ico_sphere(0, dtype=DT)
     x = (v + 0.1 * torch.randn(12, 3, generator=torch.Generator().manual_seed(4), dtype=DT))[None].requires_grad_()
@@ -200,5 +200,5 @@ def test_batched_regularizers_equal_the_per_image_loop_in_values_and_gradients(c
     (new, new_grads), (old, old_grads) = results
     for name in need:
         torch.testing.assert_close(new[name], old[name], rtol=1e-6, atol=1e-7)
-    for a, b in zip(new_grads, old_grads):
+    for a, b in zip(new_grads, old_grads, strict=True):
         torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-7)

@@ -37,7 +37,7 @@ def test_sample_mask_points_jitter_stays_inside_mask_pixels_and_crops_map_to_the
     gen = torch.Generator().manual_seed(1)
     masks = torch.rand(4, 20, 30, generator=gen) > 0.6
     points, lengths = sample_mask_points(masks.float(), 50, generator=gen)
-    for m, pts, n in zip(masks, points, lengths):
+    for m, pts, n in zip(masks, points, lengths, strict=True):
         cols, rows = pts[:n, 0].floor().long(), pts[:n, 1].floor().long()
         assert m[rows, cols].all()
     crop = torch.ones(1, 4, 4, dtype=torch.bool)

@@ -50,7 +50,7 @@ def test_mask_iou_matches_pycocotools():
     pred = torch.rand(5, 17, 23, generator=gen) > 0.5
     true = torch.rand(5, 17, 23, generator=gen) > 0.3
     ious = mask_iou(pred, true)
-    for p, t, iou in zip(pred, true, ious):
+    for p, t, iou in zip(pred, true, ious, strict=True):
         rp = mask_utils.encode(np.asfortranarray(p.numpy().astype(np.uint8)))
         rt = mask_utils.encode(np.asfortranarray(t.numpy().astype(np.uint8)))
         assert iou.item() == pytest.approx(mask_utils.iou([rp], [rt], [0])[0, 0], rel=1e-6)

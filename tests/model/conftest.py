@@ -2,9 +2,9 @@
 
 import pytest
 
-from usl.model.config import LayoutRange
 from usl.config import load_config
 from usl.data import CategoryIndex, MultiViewDataset
+from usl.model.config import LayoutRange
 from usl.records import RecordsDataset
 
 

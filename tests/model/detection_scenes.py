@@ -49,8 +49,8 @@ def recall_and_mask_iou(outputs, targets, iou_threshold: float = 0.5) -> tuple[f
     """Share of objects found by a same-class detection with box IoU >= threshold, and the
     mean mask IoU of each object's best same-class detection (0 when there is none)."""
     found, mask_ious = 0, []
-    for output, target in zip(outputs, targets):
-        for box, label, mask in zip(target["boxes"], target["labels"], target["masks"]):
+    for output, target in zip(outputs, targets, strict=True):
+        for box, label, mask in zip(target["boxes"], target["labels"], target["masks"], strict=True):
             same = output["labels"] == label
             if not same.any():
                 mask_ious.append(0.0)

@@ -51,7 +51,11 @@ def predictions(predictor: DefaultPredictor, path: Path) -> list[dict]:
     return [
         {"class": int(c), "score": float(s), "box": [float(v) for v in b], "mask": rle["counts"].decode()}
         for c, s, b, rle in zip(
-            instances.pred_classes.tolist(), instances.scores.tolist(), instances.pred_boxes.tensor.tolist(), rles
+            instances.pred_classes.tolist(),
+            instances.scores.tolist(),
+            instances.pred_boxes.tensor.tolist(),
+            rles,
+            strict=True,
         )
     ]
 

@@ -7,7 +7,6 @@ from dataclasses import dataclass
 
 import torch
 
-
 from usl.config import LossConfig
 from usl.data.samples import MultiViewSample
 from usl.geometry import Meshes, sample_points_from_meshes

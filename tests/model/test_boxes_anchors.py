@@ -4,8 +4,8 @@ import pytest
 import torch
 
 from tests.model.detection_oracles import iou_single
-from usl.utils.op_count import count_ops
 from usl.model.ops import AnchorGenerator, Box2BoxTransform, box_area, box_iou, clip_boxes, nonempty_boxes
+from usl.utils.op_count import count_ops
 
 
 def random_boxes(generator, count):
@@ -75,7 +75,7 @@ def test_anchor_grids_are_built_once_per_feature_size():
     first = generator([(5, 7), (3, 4)])
     with count_ops() as count:
         again = generator([(5, 7), (3, 4)])
-    assert count.ops == 0 and all(torch.equal(a, b) for a, b in zip(first, again))
+    assert count.ops == 0 and all(torch.equal(a, b) for a, b in zip(first, again, strict=True))
     other = generator([(6, 7), (3, 4)])
     assert other[0].shape == (6 * 7, 4) and torch.equal(other[0][: 5 * 7], first[0])
     for height in range(20):  # a bounded cache: many sizes (evaluation) do not grow it without end

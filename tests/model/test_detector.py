@@ -28,7 +28,7 @@ def test_training_losses_and_eval_output_shapes():
     detector.eval()
     with torch.no_grad():
         outputs = detector(images, sizes)
-    for output, (h, w) in zip(outputs, sizes):
+    for output, (h, w) in zip(outputs, sizes, strict=True):
         count = len(output["boxes"])
         assert 0 < count <= detector.cfg.roi_heads.detections_per_image
         assert output["boxes"].shape == (count, 4) and output["scores"].shape == (count,)
@@ -61,7 +61,7 @@ def test_a_model_built_on_the_detector_gets_what_forward_computes_through_its_me
     with torch.no_grad():
         detections = detector.detect_boxes(image_list, detector.features(image_list))
         outputs = detector(images)
-    for found, output in zip(detections, outputs):
+    for found, output in zip(detections, outputs, strict=True):
         assert not found.has("pred_masks") and torch.equal(found.pred_boxes, output["boxes"])
         assert torch.equal(found.scores, output["scores"]) and torch.equal(found.pred_classes, output["labels"])
 

@@ -7,9 +7,6 @@ import torch
 import torch.nn.functional as F
 
 from tests.model.detection_oracles import roi_align_loop, subsample_labels_read_per_image
-from usl.utils.op_count import count_ops
-from usl.model.detector.box_head import FastRCNNOutputLayers
-from usl.model.ops import box_iou, padded_match_quality, stack_padded
 from usl.model.detector import (
     ImageList,
     Instances,
@@ -23,6 +20,9 @@ from usl.model.detector import (
     subsample_labels,
     subsample_labels_dense,
 )
+from usl.model.detector.box_head import FastRCNNOutputLayers
+from usl.model.ops import box_iou, padded_match_quality, stack_padded
+from usl.utils.op_count import count_ops
 
 
 def test_level_assignment_follows_fpn_equation():
@@ -82,7 +82,7 @@ def test_matching_a_padded_batch_of_images_equals_matching_image_by_image(low_qu
     padded_gt, quality = padded_match_quality(gt, stack_padded(predictions)[0])
     assert padded_gt.shape == (4, 5, 4) and quality.shape == (4, 5, 60)
     matches, labels = matcher(quality)
-    for image, (t, p) in enumerate(zip(gt, predictions)):
+    for image, (t, p) in enumerate(zip(gt, predictions, strict=True)):
         expected_matches, expected_labels = matcher(box_iou(t, p))
         assert torch.equal(labels[image, : len(p)], expected_labels)
         assert torch.equal(matches[image, : len(p)], expected_matches)
@@ -108,9 +108,9 @@ def test_subsampling_with_the_batch_counts_read_once_draws_as_per_image_reads():
         per_image = [subsample_labels_read_per_image(x, budget, fraction) for x in images]
         torch.manual_seed(3)
         with count_ops() as reads:
-            drawn = [subsample_labels(x, budget, fraction, c) for x, c in zip(images, counts)]
+            drawn = [subsample_labels(x, budget, fraction, c) for x, c in zip(images, counts, strict=True)]
         assert reads.total_syncs == 0, reads.syncs
-        for (positive, negative), (old_positive, old_negative) in zip(drawn, per_image):
+        for (positive, negative), (old_positive, old_negative) in zip(drawn, per_image, strict=True):
             assert torch.equal(positive, old_positive) and torch.equal(negative, old_negative)
 
 
@@ -157,14 +157,14 @@ def test_batch_mask_targets_equal_one_call_per_image_with_one_read_per_mask_size
     g = torch.Generator().manual_seed(5)
     sizes = [(40, 48), (40, 48), (32, 40), (40, 48), (40, 48)]
     counts = [3, 0, 2, 4, 1]  # masks per image; the second image has none (and so no boxes)
-    masks = [torch.rand(k, h, w, generator=g) > 0.5 for k, (h, w) in zip(counts, sizes)]
+    masks = [torch.rand(k, h, w, generator=g) > 0.5 for k, (h, w) in zip(counts, sizes, strict=True)]
     boxes, index = [], []
-    for k, (h, w) in zip(counts, sizes):
+    for k, (h, w) in zip(counts, sizes, strict=True):
         n = 2 * k
         xy = torch.rand(n, 2, generator=g) * torch.tensor([w, h]) * 0.7
         boxes.append(torch.cat([xy, xy + 1 + torch.rand(n, 2, generator=g) * 20], dim=1))
         index.append(torch.randint(0, max(k, 1), (n,), generator=g))
-    per_image = torch.cat([mask_targets(m, i, b, 14) for m, i, b in zip(masks, index, boxes) if len(b)])
+    per_image = torch.cat([mask_targets(m, i, b, 14) for m, i, b in zip(masks, index, boxes, strict=True) if len(b)])
     with count_ops() as count:
         batched = batch_mask_targets(masks, index, boxes, 14)
     assert torch.equal(batched, per_image)
@@ -180,7 +180,7 @@ def test_instances_index_cat_and_validation():
     with pytest.raises(ValueError, match="rows"):
         inst.labels = torch.zeros(2)
     with pytest.raises(AttributeError, match="no field"):
-        inst.masks
+        _ = inst.masks
 
 
 def test_image_list_pads_to_divisibility():
@@ -222,7 +222,7 @@ def test_rpn_losses_weighted_over_all_anchors_match_the_sampled_anchors_alone(mo
     old_grads = torch.autograd.grad(sum(old.values()), [logits, deltas])
     for key in old:
         torch.testing.assert_close(new[key], old[key])
-    for a, b in zip(new_grads, old_grads):
+    for a, b in zip(new_grads, old_grads, strict=True):
         torch.testing.assert_close(a, b)
 
 
@@ -246,7 +246,7 @@ def test_rpn_nms_of_all_images_at_once_matches_one_image_at_a_time():
     levels = torch.arange(num_levels).repeat_interleave(per_level)
     sizes = [(64, 80), (48, 64), (64, 64)]
     new = rpn._nms_per_image(boxes, scores, levels, sizes, post_topk=25)
-    for image, (image_boxes, image_scores, size) in enumerate(zip(boxes, scores, sizes)):
+    for image, (image_boxes, image_scores, size) in enumerate(zip(boxes, scores, sizes, strict=True)):
         image_boxes = clip_boxes(image_boxes, size)
         keep = nonempty_boxes(image_boxes, MIN_BOX_SIZE) & torch.isfinite(image_scores)
         keep &= torch.isfinite(image_boxes).all(dim=1)
@@ -298,7 +298,7 @@ def test_box_inference_of_all_images_at_once_matches_one_image_at_a_time_with_re
     head = FastRCNNOutputLayers(16, 3)
     sizes, counts = [(80, 96), (64, 64), (48, 80), (80, 80)], [30, 0, 25, 40]
     proposals = []
-    for size, n in zip(sizes, counts):
+    for size, n in zip(sizes, counts, strict=True):
         corner = torch.rand(n, 2, generator=g) * 60 - 5
         proposals.append(
             Instances(size, proposal_boxes=torch.cat([corner, corner + 5 + torch.rand(n, 2, generator=g) * 30], 1))
@@ -309,7 +309,7 @@ def test_box_inference_of_all_images_at_once_matches_one_image_at_a_time_with_re
     deltas[3] = float("nan")
     new = head.inference(logits, deltas, proposals, 0.05, 0.5, 12)
     for image, (proposal, image_logits, image_deltas) in enumerate(
-        zip(proposals, logits.split(counts), deltas.split(counts))
+        zip(proposals, logits.split(counts), deltas.split(counts), strict=True)
     ):
         boxes = head.box2box.apply_deltas(image_deltas, proposal.proposal_boxes)
         boxes = clip_boxes(boxes.view(-1, 3, 4), proposal.image_size)

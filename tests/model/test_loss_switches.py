@@ -6,11 +6,10 @@ from dataclasses import replace
 import pytest
 import torch
 
+from tests.model.test_usl_model import _true_meshes  # the samples' true cuboids
 from usl.config import ConfigError, load_config
 from usl.data import SampleKey
 from usl.model.multiview_loss import multiview_silhouette_loss
-
-from tests.model.test_usl_model import _true_meshes  # the samples' true cuboids
 
 
 @pytest.fixture(scope="module")

@@ -7,15 +7,14 @@ from dataclasses import replace
 import pytest
 import torch
 
-from usl.model.config import LayoutRange
+from tests.model.test_usl_model import _true_meshes  # an independent camera-frame cast
 from usl.config import load_config
 from usl.data import CategoryIndex, MultiViewDataset, SampleKey
+from usl.errors import UslError
+from usl.model.config import LayoutRange
 from usl.model.mesh3d_loss import MESH_RCNN_SHAPENET, mesh_supervision_loss
 from usl.model.usl_model import USLModel
 from usl.records import RecordsDataset
-from usl.errors import UslError
-
-from tests.model.test_usl_model import _true_meshes  # an independent camera-frame cast
 
 
 @pytest.fixture(scope="module")
@@ -41,7 +40,7 @@ def test_samples_carry_the_true_meshes_in_the_input_camera_only_when_asked(setup
     sample = dataset[SampleKey(3, 0)]
     verts, faces = _true_meshes(records, dataset, sample, 3)
     assert len(sample.true_meshes) == len(sample.object_rows) == len(verts)
-    for mesh, expected in zip(sample.true_meshes, verts):
+    for mesh, expected in zip(sample.true_meshes, verts, strict=True):
         torch.testing.assert_close(mesh.verts, expected, atol=1e-5, rtol=0)
         assert torch.equal(mesh.faces, faces)
     assert MultiViewDataset(records, cfg.data, categories, seed=0)[SampleKey(3, 0)].true_meshes is None
@@ -50,7 +49,7 @@ def test_samples_carry_the_true_meshes_in_the_input_camera_only_when_asked(setup
 def test_true_mesh_scores_zero_and_descent_moves_shape_and_layout_to_it(setup):
     cfg, records, dataset, _ = setup
     samples = [dataset[SampleKey(i, 0)] for i in (0, 5)]
-    truth = [_true_meshes(records, dataset, s, i) for s, i in zip(samples, (0, 5))]
+    truth = [_true_meshes(records, dataset, s, i) for s, i in zip(samples, (0, 5), strict=True)]
     faces = truth[0][1]
     verts = torch.cat([v for v, _ in truth])
     counts = [len(v) for v, _ in truth]

@@ -4,11 +4,11 @@
 import pytest
 import torch
 
-from usl.model.config import LayoutRange, ShapeHeadConfig
 from usl.config import load_config
 from usl.data import CategoryIndex, MultiViewDataset, SampleKey
 from usl.geometry import ico_sphere
 from usl.model.backbone import ShapeSpec
+from usl.model.config import LayoutRange, ShapeHeadConfig
 from usl.model.heads import ShapeHead, project_cube_to_image, roimap_features
 from usl.model.usl_model import USLModel
 from usl.records import RecordsDataset
@@ -29,7 +29,10 @@ def test_multi_map_roimap_samples_each_map_at_its_own_stride():
     once equals concatenating one call per map."""
     torch.manual_seed(0)
     strides, scales = (4, 8, 16), (1.0, -2.0, 0.5)
-    maps = [_linear_field(64 // s, 96 // s, s, k).expand(2, -1, -1, -1).contiguous() for s, k in zip(strides, scales)]
+    maps = [
+        _linear_field(64 // s, 96 // s, s, k).expand(2, -1, -1, -1).contiguous()
+        for s, k in zip(strides, scales, strict=True)
+    ]
     maps[1] = torch.cat([maps[1], torch.randn(2, 3, 8, 12)], dim=1)  # uneven channel counts: 2, 5, 2
     boxes = torch.tensor([[20.0, 12.0, 60.0, 44.0], [30.0, 20.0, 70.0, 50.0], [40.0, 16.0, 56.0, 40.0]])
     image_index = torch.tensor([1, 0, 1])
@@ -39,9 +42,11 @@ def test_multi_map_roimap_samples_each_map_at_its_own_stride():
     uv = project_cube_to_image(verts, boxes)
     # inside the outermost cell centres of the coarsest map: no zero padding is blended in
     inner = ((uv > 8) & (uv < torch.tensor([88.0, 56.0]))).all(-1)
-    for offset, scale in zip((0, 2, 7), scales):
+    for offset, scale in zip((0, 2, 7), scales, strict=True):
         assert torch.allclose(together[..., offset : offset + 2][inner], scale * uv[inner], atol=1e-3)
-    one_by_one = torch.cat([roimap_features([m], [s], verts, boxes, image_index) for m, s in zip(maps, strides)], -1)
+    one_by_one = torch.cat(
+        [roimap_features([m], [s], verts, boxes, image_index) for m, s in zip(maps, strides, strict=True)], -1
+    )
     torch.testing.assert_close(together, one_by_one)
     with pytest.raises(ValueError, match="2 feature maps for 3 strides"):
         roimap_features(maps[:2], strides, verts, boxes, image_index)

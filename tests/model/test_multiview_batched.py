@@ -10,9 +10,9 @@ import torch
 
 import usl.model.multiview_loss as batched
 from tests.data.synthetic_samples import synthetic_config, synthetic_sample
+from tests.model import multiview_oracle
 from usl.geometry.icosphere import ico_sphere
 from usl.losses import sample_mask_points
-from tests.model import multiview_oracle
 
 
 def batch_with_absent_pairs():

@@ -1,9 +1,10 @@
+import importlib
+
 import pytest
 import torch
 
 from tests.model.detection_oracles import nms_loop, torchvision_ops
 from usl.model.ops import batched_nms, nms
-import importlib
 
 NMS = importlib.import_module("usl.model.ops.nms")
 
@@ -173,7 +174,7 @@ def test_unusable_boxes_never_suppress_and_are_kept(count):
 
 def test_float16_threshold_is_compared_as_a_real_number():
     iou = torch.tensor([0.3, 0.5, 0.7], dtype=torch.float16)  # each rounded off its decimal threshold
-    expected = [float(v) > t for v, t in zip(iou.double().tolist(), (0.3, 0.5, 0.7))]
+    expected = [float(v) > t for v, t in zip(iou.double().tolist(), (0.3, 0.5, 0.7), strict=True)]
     assert [bool(NMS._above(iou[k : k + 1], t)) for k, t in enumerate((0.3, 0.5, 0.7))] == expected
     assert NMS._above(iou.bfloat16(), 0.5).tolist() == [float(v) > 0.5 for v in iou.bfloat16().double().tolist()]
 

@@ -14,7 +14,6 @@ from tests.model.detection_oracles import _bilinear
 from tests.model.detection_scenes import make_dataset
 from tests.model.detectron2_fixtures import CHECKPOINT_KEYS, MASK_RCNN, POINTREND
 from usl.model.detector import DetectorConfig, MaskRCNN
-from usl.model.detector.roi_heads import PointRendROIHeads
 from usl.model.detector.point_rend import (
     PointHead,
     PointRendSettings,
@@ -23,6 +22,7 @@ from usl.model.detector.point_rend import (
     regular_grid,
     sample_box_points,
 )
+from usl.model.detector.roi_heads import PointRendROIHeads
 from usl.model.pretrained import WeightsError, init_detector
 from usl.model.segmenter import SegmenterConfig, detector_for_weights
 

@@ -15,8 +15,8 @@ from tests.model.pretrained_layouts import (
     torchvision_maskrcnn,
     torchvision_resnet50,
 )
-from usl.model.config import LayoutHeadConfig, LayoutRange, ModelConfig, ShapeHeadConfig
 from usl.model.backbone import IMAGENET_MEAN, IMAGENET_STD, BackboneConfig, FPNConfig, ResNetConfig
+from usl.model.config import LayoutHeadConfig, LayoutRange, ModelConfig, ShapeHeadConfig
 from usl.model.detector import BoxHeadConfig, DetectorConfig, MaskHeadConfig, MaskRCNN, ROIHeadsConfig
 from usl.model.pretrained import WeightsError, init_detector, print_report
 from usl.model.usl_model import USLModel

@@ -159,13 +159,13 @@ def test_fpn_levels_in_one_pass_match_one_call_per_level():
             pooled = pooler(leaves, boxes)
         else:
             pooled = torch.zeros(len(rois), 3, 5, 5, dtype=torch.float64)
-            for index, (name, stride) in enumerate(zip(["p2", "p3", "p4"], [4, 8, 16])):
+            for index, (name, stride) in enumerate(zip(["p2", "p3", "p4"], [4, 8, 16], strict=True)):
                 rows = torch.nonzero(level == index).squeeze(1)
                 pooled[rows] = roi_align(leaves[name], rois[rows], 5, 1.0 / stride, 0, aligned=True)
         (pooled * torch.linspace(-1, 1, pooled.numel(), dtype=torch.float64).view_as(pooled)).sum().backward()
         results.append((pooled.detach(), [leaves[k].grad for k in shapes]))
     torch.testing.assert_close(results[0][0], results[1][0], rtol=0, atol=1e-12)
-    for new, old in zip(results[0][1], results[1][1]):
+    for new, old in zip(results[0][1], results[1][1], strict=True):
         torch.testing.assert_close(new, old, rtol=0, atol=1e-12)
 
 
@@ -183,8 +183,8 @@ def test_chunk_plan_covers_every_roi_once_within_memory_and_merges_where_padding
             assert h == heights[index].max() and w == widths[index].max()
             assert len(index) == 1 or len(index) * channels * h * w <= budget
         cost = sum(len(index) * channels * h * w + _CHUNK_COST for index, h, w in plan)
-        one_per_size = {(h, w): 0 for h, w in zip(heights, widths)}
-        for h, w in zip(heights, widths):
+        one_per_size = {(h, w): 0 for h, w in zip(heights, widths, strict=True)}
+        for h, w in zip(heights, widths, strict=True):
             one_per_size[(h, w)] += 1
         unmerged = sum(  # no padding at all: one chunk per window size (split to fit the budget)
             n * channels * h * w + -(-n // max(1, budget // (channels * h * w))) * _CHUNK_COST

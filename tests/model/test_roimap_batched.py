@@ -13,7 +13,7 @@ def grid_sample_oracle(maps, strides, verts, boxes, image_index):
     per_object = []
     for n in range(len(verts)):
         sampled = []
-        for feature_map, stride in zip(maps, strides):
+        for feature_map, stride in zip(maps, strides, strict=True):
             height, width = feature_map.shape[-2:]
             extent = torch.tensor([width * stride, height * stride], dtype=uv.dtype)
             grid = (2.0 * uv[n] / extent - 1.0).reshape(1, 1, -1, 2)
@@ -40,7 +40,7 @@ def test_batched_roimap_matches_grid_sample_in_values_and_gradients():
     (new, new_v, new_maps), (old, old_v, old_maps) = results
     torch.testing.assert_close(new, old, atol=1e-5, rtol=1e-5)
     torch.testing.assert_close(new_v, old_v, atol=1e-4, rtol=1e-4)
-    for a, b in zip(new_maps, old_maps):
+    for a, b in zip(new_maps, old_maps, strict=True):
         torch.testing.assert_close(a, b, atol=1e-5, rtol=1e-5)
 
 

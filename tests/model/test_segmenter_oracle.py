@@ -21,8 +21,8 @@ import pycocotools.mask as mask_util
 import pytest
 import torch
 
-from tests.model.detectron2_fixtures import FIXTURES, ORACLE_SEED, write_test_images
 from data_specs import coco_category_ids
+from tests.model.detectron2_fixtures import FIXTURES, ORACLE_SEED, write_test_images
 from usl.model.detector.mask_head import paste_masks_in_image
 from usl.model.ops import box_iou, clip_boxes, nonempty_boxes
 from usl.model.segmenter import InstanceSegmenter, SegmenterConfig
@@ -73,7 +73,7 @@ def match(ours, theirs, height: int, width: int) -> dict:
     their_scores = np.array([d["score"] for d in theirs])
     free = set(range(len(ours)))
     pairs, unpaired = [], []
-    for oracle, category in zip(theirs, their_categories):
+    for oracle, category in zip(theirs, their_categories, strict=True):
         candidates = [
             i
             for i in free
@@ -117,16 +117,16 @@ def check_run(run, images, weights):
     segmenter = InstanceSegmenter.from_weights(weights[run["model"]], cfg)
     names = sorted(run["images"])
     results = segmenter([images[name] for name in names])
-    for name, ours in zip(names, results):
+    for name, ours in zip(names, results, strict=True):
         theirs = run["images"][name]
         height, width = images[name].shape[:2]
         stats = match(ours, theirs, height, width)
         assert len(stats["pairs"]) >= 0.9 * len(theirs) > 0, (name, len(stats["pairs"]), len(theirs))
         # only near-ties at the per-image cut or at the NMS threshold may go unpaired
         assert not stats["unexplained"], (name, stats["unexplained"])
-        box_errors, ious, indices, masks = zip(*stats["pairs"])
+        box_errors, ious, indices, masks = zip(*stats["pairs"], strict=True)
         assert max(box_errors) < BOX_TOLERANCE, (name, max(box_errors))
-        for iou, index, mask in zip(ious, indices, masks):
+        for iou, index, mask in zip(ious, indices, masks, strict=True):
             if iou < MIN_MASK_IOU:
                 disagree = mask != ours.masks[index]
                 band = np.abs(probabilities(segmenter, images[name], index)[disagree] - 0.5)

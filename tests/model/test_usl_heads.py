@@ -4,11 +4,11 @@ import numpy as np
 import pytest
 import torch
 
-from usl.model.config import LayoutHeadConfig, LayoutRange, ShapeHeadConfig
 from usl.geometry import cube_to_frustum, ico_sphere, unique_edges
 from usl.geometry.cameras import project
-from usl.model.heads import GraphConv, LayoutHead, ShapeHead, project_cube_to_image, roimap_features, vertalign_features
 from usl.model.backbone import ShapeSpec
+from usl.model.config import LayoutHeadConfig, LayoutRange, ShapeHeadConfig
+from usl.model.heads import GraphConv, LayoutHead, ShapeHead, project_cube_to_image, roimap_features, vertalign_features
 from usl.model.heads.layout import box_geometry
 from usl.model.heads.vertex_features import single_level_pooler
 
@@ -49,7 +49,7 @@ def test_graph_conv_equals_the_advanced_indexing_form_bit_for_bit():
     for forward in (lambda x: conv(x, edges), advanced_indexing):
         y = forward(x)
         results.append([y, *torch.autograd.grad((y * weight).sum(), [x, *conv.parameters()])])
-    assert all(torch.equal(new, old) for new, old in zip(*results))
+    assert all(torch.equal(new, old) for new, old in zip(*results, strict=True))
 
 
 def test_graph_conv_inits_mesh_rcnn_small_weights_or_a_scale_keeping_kaiming():

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 import torch
 
-from usl.losses import PiecewiseLinear
 from usl.data import SampleKey
 from usl.geometry.cameras import project, transform_points
+from usl.losses import PiecewiseLinear
 from usl.model.heads import roimap_features
 from usl.model.multiview_loss import multiview_silhouette_loss
 from usl.model.outputs import ObjectPredictions
@@ -60,10 +60,12 @@ def test_true_depth_beats_a_depth_error_only_other_views_can_see(setup):
 def test_loss_is_a_per_image_mean_and_ignores_absent_objects(setup):
     cfg, records, dataset = setup
     samples = [dataset[SampleKey(i, 0)] for i in (1, 14)]
-    meshes = [_true_meshes(records, dataset, s, i) for s, i in zip(samples, (1, 14))]
+    meshes = [_true_meshes(records, dataset, s, i) for s, i in zip(samples, (1, 14), strict=True)]
     faces = meshes[0][1]
     verts = [m[0] * 1.1 for m in meshes]
-    single = [multiview_silhouette_loss(v, faces, [s], [len(v)], cfg.loss).l3d for v, s in zip(verts, samples)]
+    single = [
+        multiview_silhouette_loss(v, faces, [s], [len(v)], cfg.loss).l3d for v, s in zip(verts, samples, strict=True)
+    ]
     batch = multiview_silhouette_loss(torch.cat(verts), faces, samples, [len(v) for v in verts], cfg.loss).l3d
     assert torch.isclose(batch, 0.5 * (single[0] + single[1]), rtol=1e-5)
     # an object marked absent in a view contributes nothing there, whatever its mask says
@@ -127,7 +129,7 @@ def test_predict_casts_meshes_into_the_object_frustum(setup):
     frames = [dataset[SampleKey(i, 0)].frame for i in (0, 5)]
     predictions = model.predict(frames, mode="gt_boxes")
     assert model.training  # predict restores the mode it found
-    for frame, pred in zip(frames, predictions):
+    for frame, pred in zip(frames, predictions, strict=True):
         assert isinstance(pred, ObjectPredictions) and len(pred) == len(frame.boxes)
         assert torch.equal(pred.instance_ids, frame.instance_ids) and torch.equal(pred.labels, frame.labels)
         assert pred.verts.shape == (len(frame.boxes), 162, 3) and pred.faces.shape == (320, 3)
@@ -211,7 +213,7 @@ def test_gradient_diagnostics_observe_without_changing_the_step(setup):
             torch.testing.assert_close(losses["stat/grad_ratio"], losses["stat/grad_dist"] / losses["stat/grad_xent"])
         else:
             assert "stat/grad_dist" not in losses
-    assert all(torch.equal(a, b) for a, b in zip(*grads))
+    assert all(torch.equal(a, b) for a, b in zip(*grads, strict=True))
     torch.manual_seed(0)
     no_dist = USLModel(cfg.model, replace(cfg.loss, dist_schedule=PiecewiseLinear(iters=(0,), values=(0.0,))))
     assert no_dist(samples, diagnostics=True)["stat/grad_dist"].item() == 0.0

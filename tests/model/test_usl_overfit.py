@@ -9,12 +9,12 @@ import pytest
 import torch
 
 from tests.data.synthetic_records import build_synthetic_records
+from usl.cli.train import main
 from usl.data import CategoryIndex, decode_frame
 from usl.data.dataset import decode_target_view
-from usl.evaluation.baselines import sphere_verts
 from usl.engine.checkpoint import load_model
-from usl.cli.train import main
 from usl.engine.train import seed_everything
+from usl.evaluation.baselines import sphere_verts
 from usl.geometry.cameras import relative_transform, transform_points
 from usl.model.usl_model import USLModel
 from usl.records import RecordsDataset

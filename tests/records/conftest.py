@@ -4,8 +4,8 @@ import pytest
 @pytest.fixture(scope="session")
 def fake_build(tmp_path_factory):
     """A small dataset in the current schema (train: 2 scenes in 2 shards, val: 1 scene) with 3D objects."""
-    from tests.records.fake_scenes import SPEC, build_fake_scene
     from pipelines.common import BuildOptions, ShardPlan, run_build
+    from tests.records.fake_scenes import SPEC, build_fake_scene
 
     root = tmp_path_factory.mktemp("fake_build") / "ds"
     plans = [

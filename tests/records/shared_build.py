@@ -10,8 +10,8 @@ import sys
 import time
 from pathlib import Path
 
-from tests.records import fake_scenes
 from pipelines.common import BuildOptions, ShardPlan, run_build
+from tests.records import fake_scenes
 from usl.errors import UslError
 
 NUM_SHARDS = 12

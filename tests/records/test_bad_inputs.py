@@ -6,22 +6,22 @@ from __future__ import annotations
 import json
 import os
 import shutil
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
 
 import pytest
 
-from tests.records.fake_scenes import SPEC, build_fake_scene, fake_frames
 from pipelines.common import BuildOptions, ShardPlan, run_build
 from pipelines.hypersim.metadata import read_camera_csv, read_split_csv
 from pipelines.scene_shapes.cli import main as scene_shapes_main
+from tests.records.fake_scenes import SPEC, build_fake_scene, fake_frames
+from usl.cli.evaluate import main as eval_main
+from usl.cli.records import main as records_main
 from usl.data import CategoryIndex, MultiViewDataset
 from usl.data.config import DataConfig
-from usl.cli.evaluate import main as eval_main
-from usl.records import RecordsDataset, SceneRecord
 from usl.errors import UslError
-from usl.cli.records import main as records_main
+from usl.records import RecordsDataset, SceneRecord
 from usl.records.shards import shard_paths
 
 SHARD = shard_paths(Path(), "train", 0)["frames"].as_posix()  # where the layout puts train shard 0

@@ -9,13 +9,12 @@ import numpy as np
 import pytest
 from torch.utils.data import DataLoader
 
-from usl.data.loader import worker_start_method
-
+from pipelines.common import BuildOptions, ShardPlan, run_build
 from tests.records.fake_scenes import SPEC, build_fake_scene
 from tests.records.old_writer import write_old_file
-from pipelines.common import BuildOptions, ShardPlan, run_build
-from usl.records import RecordsDataset, SceneStream, decode_mask
+from usl.data.loader import worker_start_method
 from usl.errors import UslError
+from usl.records import RecordsDataset, SceneStream, decode_mask
 from usl.records.schema import file_schema_version
 
 REPO = Path(__file__).parents[2]  # children import tests.records.* from the repository root
@@ -91,9 +90,9 @@ def test_round_trip_and_worker_count_determinism(tmp_path):
     expected = build_fake_scene(("scene005", 5, 3))
     rows = ds.read_scene("scene005")
     assert [r["view_id"] for r in rows] == [0, 1, 2]
-    for got, want in zip(rows, expected.frames):
+    for got, want in zip(rows, expected.frames, strict=True):
         assert got["image"] == want["image"] and got["K"] == want["K"]
-        for g, w in zip(got["instances"], want["instances"]):
+        for g, w in zip(got["instances"], want["instances"], strict=True):
             np.testing.assert_array_equal(decode_mask(g["mask"]), decode_mask(w["mask"]))
             assert g["box_xyxy"] == w["box_xyxy"] and g["instance_id"] == w["instance_id"]
     assert [r["view_id"] for r in ds.read_scene("scene005", views=[2, 0])] == [2, 0]

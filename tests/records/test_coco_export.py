@@ -10,8 +10,8 @@ import pytest
 from pycocotools.coco import COCO
 from pycocotools.cocoeval import COCOeval
 
-from usl.records import RecordsDataset, decode_mask
 from usl.cli.records import main as records_cli
+from usl.records import RecordsDataset, decode_mask
 
 
 @pytest.fixture(scope="module")
@@ -54,7 +54,7 @@ def test_masks_boxes_and_ids_match_the_records(export, fake_build):
     records = RecordsDataset(fake_build, "train")
     rows = [row for scene in records.scene_ids for row in records.read_scene(scene)]
     assert len(coco.imgs) == len(rows) == 7
-    for image_id, row in zip(sorted(coco.imgs), rows):
+    for image_id, row in zip(sorted(coco.imgs), rows, strict=True):
         image = coco.imgs[image_id]
         assert (image["scene_id"], image["view_id"], image["height"], image["width"]) == (
             row["scene_id"],
@@ -64,7 +64,7 @@ def test_masks_boxes_and_ids_match_the_records(export, fake_build):
         )
         anns = coco.imgToAnns[image_id]
         assert [a["instance_id"] for a in anns] == [i["instance_id"] for i in row["instances"]]
-        for ann, inst in zip(anns, row["instances"]):
+        for ann, inst in zip(anns, row["instances"], strict=True):
             np.testing.assert_array_equal(coco.annToMask(ann).astype(bool), decode_mask(inst["mask"]))
             x0, y0, x1, y1 = inst["box_xyxy"]
             assert ann["bbox"] == pytest.approx([x0, y0, x1 - x0, y1 - y0]) and ann["area"] == inst["area"]

@@ -9,12 +9,12 @@ import pyarrow.dataset as pads
 import pyarrow.parquet as pq
 import pytest
 
+from tests.records.old_writer import write_old_copy
 from usl.records import RecordsDataset, decode_depth, decode_image, decode_mask
 from usl.records.card import dataset_card
 from usl.records.schema import HF_METADATA_KEY, legacy_hf_features
 from usl.records.shards import sha256_file
 from usl.records.validate import validate_dataset
-from tests.records.old_writer import write_old_copy
 
 datasets = pytest.importorskip("datasets")
 
@@ -104,7 +104,7 @@ def test_hugging_face_decodes_depth_to_the_records_millimetres_losslessly(fake_b
     records = [row for s in ours.scene_ids for row in ours.read_scene(s)]
     table = pd.read_parquet(fake_build / "frames" / "train")
     assert len(records) == frames.num_rows == len(table) == 7
-    for record, got, cell in zip(records, frames, table["depth"]):
+    for record, got, cell in zip(records, frames, table["depth"], strict=True):
         if record["depth"] is None:  # scene s/1 view 2
             assert got["depth"] is None and cell is None
             continue

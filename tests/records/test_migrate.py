@@ -10,13 +10,13 @@ import sys
 import pandas as pd
 import pytest
 
-from usl.records import RecordsDataset
-from usl.errors import UslError
-from usl.records import migrate as migrate_module
+from tests.records.old_writer import write_old_copy
 from usl.cli.records import main as records_cli
+from usl.errors import UslError
+from usl.records import RecordsDataset
+from usl.records import migrate as migrate_module
 from usl.records.migrate import migrate_dataset
 from usl.records.validate import validate_dataset
-from tests.records.old_writer import write_old_copy
 
 
 def all_rows(root):

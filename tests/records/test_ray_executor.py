@@ -2,8 +2,8 @@
 
 import pytest
 
-from tests.records.fake_scenes import SPEC, build_fake_scene, build_streamed_fake_scene
 from pipelines.common import BuildOptions, ShardPlan, run_build
+from tests.records.fake_scenes import SPEC, build_fake_scene, build_streamed_fake_scene
 
 pytest.importorskip("ray")
 

@@ -10,12 +10,12 @@ from pathlib import Path
 
 import pytest
 
-from tests.records import fake_scenes
 from pipelines.common import BuildOptions, run_build
+from tests.records import fake_scenes
 from tests.records.old_writer import write_old_file
 from tests.records.shared_build import NUM_SHARDS, plans
-from usl.records.claims import host_identity
 from usl.cli.records import main as records_main
+from usl.records.claims import host_identity
 from usl.records.shards import shard_paths, shard_temp_path
 from usl.records.validate import validate_dataset
 
@@ -64,7 +64,7 @@ def start(out, versions, ready):
 
 def finish(procs):
     outputs = [p.communicate(timeout=120)[0] for p in procs]
-    return [(p.returncode, json.loads(o.strip().splitlines()[-1])) for p, o in zip(procs, outputs)]
+    return [(p.returncode, json.loads(o.strip().splitlines()[-1])) for p, o in zip(procs, outputs, strict=True)]
 
 
 def leftovers(root):

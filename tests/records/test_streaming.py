@@ -8,8 +8,8 @@ from pathlib import Path
 import pyarrow.parquet as pq
 import pytest
 
-from tests.records.fake_scenes import SPEC, build_fake_scene, build_streamed_fake_scene, fake_frames
 from pipelines.common import BuildOptions, ShardPlan, run_build
+from tests.records.fake_scenes import SPEC, build_fake_scene, build_streamed_fake_scene, fake_frames
 from usl.records import RecordsDataset, SceneRecord
 from usl.records.manifest import dataset_metadata
 from usl.records.schema import table_schema

@@ -7,11 +7,11 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 
-from tests.records.fake_scenes import SPEC, build_fake_scene
 from pipelines.common import BuildOptions, ShardPlan, run_build
-from usl.records import RecordsDataset, encode_depth
-from usl.errors import UslError
+from tests.records.fake_scenes import SPEC, build_fake_scene
 from usl.cli.records import main as records_cli
+from usl.errors import UslError
+from usl.records import RecordsDataset, encode_depth
 from usl.records.validate import validate_dataset
 
 

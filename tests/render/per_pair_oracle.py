@@ -82,10 +82,14 @@ def render_dynamic_per_pair(
         windows = square_windows(boxes, image_sizes, padding, min_size)
     K_window = window_intrinsics(windows, resolution).to(K.dtype) @ K
     soft = rasterize_soft(verts, faces, face_window, K_window, resolution, resolution, settings)
-    target = torch.stack([resample_mask_area(m, w.tolist(), resolution) for m, w in zip(true_masks, windows)])
+    target = torch.stack(
+        [resample_mask_area(m, w.tolist(), resolution) for m, w in zip(true_masks, windows, strict=True)]
+    )
     valid = _cells_inside_image(windows, image_sizes, resolution)
     if ignore_masks is not None:
-        hidden = torch.stack([resample_mask_area(m, w.tolist(), resolution) for m, w in zip(ignore_masks, windows)])
+        hidden = torch.stack(
+            [resample_mask_area(m, w.tolist(), resolution) for m, w in zip(ignore_masks, windows, strict=True)]
+        )
         valid = valid & (hidden <= 0.5).to(valid.device)
     return DynamicRender(
         soft=soft,

@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 import torch
-import trimesh
 import torch.nn.functional as F
+import trimesh
 
 from tests.render.per_pair_oracle import projected_boxes_of_kept_faces, render_dynamic_per_pair
 from tests.render.render_oracle import intrinsics, random_scene, render_pyrender
@@ -55,7 +55,7 @@ def test_exact_area_resampling_matches_overlap_oracle_and_average_pooling():
     got = resample_masks_area(
         torch.as_tensor(masks), torch.tensor(windows, dtype=torch.float64), 16
     ).numpy()  # all windows at once
-    for mask, window, coverage in zip(masks, windows, got):
+    for mask, window, coverage in zip(masks, windows, got, strict=True):
         np.testing.assert_allclose(coverage, area_oracle(mask, window, 16), atol=1e-9)
     # Integer-aligned windows whose side is a multiple of R are plain average pooling.
     pooled = F.avg_pool2d(torch.as_tensor(masks[0, 4:36, 8:40], dtype=torch.float64)[None], 4)
@@ -86,7 +86,7 @@ def test_batched_render_matches_the_per_pair_oracle_in_values_and_gradients():
     Ks = torch.stack([torch.as_tensor(intrinsics(h, w, (0.02, -0.01))) for h, w in sizes])
     masks = [
         torch.as_tensor(render_pyrender([m], np.eye(4), K.numpy(), h, w)[2][0])
-        for m, K, (h, w) in zip(objects, Ks, sizes)
+        for m, K, (h, w) in zip(objects, Ks, sizes, strict=True)
     ]
     masks[1] = torch.roll(masks[1], shifts=(3, -5), dims=(0, 1))  # a truth that differs from the mesh
     occluders = [torch.as_tensor(rng.random((h, w)) > 0.9) for h, w in sizes]
@@ -148,7 +148,7 @@ def test_windows_are_square_and_contain_the_true_silhouette_and_the_projected_me
         verts, faces, window, torch.as_tensor(K).expand(len(objects), 3, 3), PaddedMasks.of(true_masks), resolution=32
     )
     assert out.soft.shape == out.target.shape == out.valid.shape == (len(objects), 32, 32)
-    for p, (mesh, mask) in enumerate(zip(objects, true_masks.numpy())):
+    for p, (mesh, mask) in enumerate(zip(objects, true_masks.numpy(), strict=True)):
         x0, y0, x1, y1 = out.windows[p].tolist()
         assert x1 - x0 == pytest.approx(y1 - y0)
         ys, xs = np.nonzero(mask)

@@ -15,7 +15,7 @@ MIN_AREA = 150  # pixels; IoU >= 0.99 is only meaningful for objects this large
 def pack(meshes, transforms):
     """Packed camera-frame vertices, faces and per-face mesh index for meshes given in the world."""
     verts, faces, mesh_idx, offset = [], [], [], 0
-    for i, (mesh, world_to_cam) in enumerate(zip(meshes, transforms)):
+    for i, (mesh, world_to_cam) in enumerate(zip(meshes, transforms, strict=True)):
         v = transform_points(torch.as_tensor(mesh.vertices, dtype=torch.float64), world_to_cam)
         verts.append(v)
         faces.append(torch.as_tensor(mesh.faces, dtype=torch.long) + offset)

@@ -199,8 +199,8 @@ def test_pair_chunks_equal_the_former_span_reading_ones_without_a_read_per_chunk
     assert count.total_syncs == 1, count.syncs  # the number of pairs, once
     former = list(iter_face_pixels_by_span(boxes, chunk_size))
     assert len(chunks) == len(former) > 0
-    for new, old in zip(chunks, former):
-        assert all(torch.equal(a, b) for a, b in zip(new, old))
+    for new, old in zip(chunks, former, strict=True):
+        assert all(torch.equal(a, b) for a, b in zip(new, old, strict=True))
 
 
 def test_nearest_faces_per_pixel_equal_the_former_crowded_only_ranking_without_a_read():

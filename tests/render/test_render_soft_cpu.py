@@ -12,10 +12,10 @@ import trimesh
 from tests.render.render_oracle import intrinsics
 from tests.render.test_render_soft import pack
 from usl.render import SoftRasterSettings, rasterize_soft, rasterize_soft_dense, soft_cpu
-from usl.utils import compiled
-from usl.utils.compiled import torch_paths_only
 from usl.render.screen import ndc_scale, project_faces
 from usl.render.soft import _select_pairs
+from usl.utils import compiled
+from usl.utils.compiled import torch_paths_only
 
 pytestmark = pytest.mark.skipif(compiled.numba is None, reason="numba is not installed")
 
@@ -126,7 +126,7 @@ def test_exact_ties_between_edge_distances_share_the_gradient_as_torch_minimum_d
         with monkeypatch.context() as patch, contextlib.nullcontext() if use_compiled else torch_paths_only():
             plane = screen.plane.detach().clone().requires_grad_(True)
             screen_copy = type(screen)(screen.xy, plane, screen.depths, screen.visible)
-            patch.setattr("usl.render.soft.project_faces", lambda *args: screen_copy)
+            patch.setattr("usl.render.soft.project_faces", lambda *args, projected=screen_copy: projected)
             rasterize_soft(verts, faces, window, K, 16, 16, settings).sum().backward()
             grads.append(plane.grad)
     # column 8 (centres at x = 8.5) is the axis of symmetry: above corner 2 (8.5, 10) both edges meeting

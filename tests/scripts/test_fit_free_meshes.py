@@ -6,9 +6,9 @@ from __future__ import annotations
 
 import json
 
+import fit_free_meshes
 import pytest
 
-import fit_free_meshes
 from tests.evaluation.eval_helpers import build_dataset
 from usl.config import load_config
 

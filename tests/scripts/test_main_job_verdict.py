@@ -36,7 +36,7 @@ def _write_builds(root: Path, rows: dict[str, list[tuple]], first_only: str | No
         summaries = []
         for name, values in rows.items():
             metrics = {m: 0.5 for m in METRICS}
-            metrics.update(zip(("chamfer", "f1", "mask_iou_input", "mask_iou_views"), values[build]))
+            metrics.update(zip(("chamfer", "f1", "mask_iou_input", "mask_iou_views"), values[build], strict=True))
             summaries.append(PredictorSummary(name, True, True, False, 32, metrics, {m: 32 for m in METRICS}))
         if first_only and seed == 1:
             summaries.append(PredictorSummary(first_only, True, False, False, 32, dict.fromkeys(METRICS, 0.3), {}))

@@ -4,10 +4,9 @@ depth orders), the count of rightly ordered pairs, and the owner oracle hiding a
 
 from __future__ import annotations
 
+import mask_head_iou
 import torch
 
-
-import mask_head_iou
 from usl.geometry import ico_sphere
 
 K = torch.tensor([[60.0, 0.0, 32.0], [0.0, 60.0, 32.0], [0.0, 0.0, 1.0]])

@@ -3,12 +3,11 @@ length against trimesh."""
 
 from __future__ import annotations
 
-
+import mesh_roughness
 import numpy as np
 import torch
 import trimesh
 
-import mesh_roughness
 from usl.geometry import faces_on_each_edge, uniform_laplacian, unique_edges
 
 

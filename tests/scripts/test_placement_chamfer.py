@@ -2,12 +2,10 @@
 
 from __future__ import annotations
 
-
 import numpy as np
+import placement_chamfer
 import torch
 from scipy.spatial.distance import cdist
-
-import placement_chamfer
 
 
 def _chamfer(a: np.ndarray, b: np.ndarray) -> float:

@@ -13,9 +13,9 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
-
 import table1_plan
 import table1_summary
+
 from usl.config import CONFIG_DIR, load_config
 from usl.engine.checkpoint import write_run_checkpoint
 from usl.evaluation.report import write_report

@@ -21,8 +21,8 @@ import contextlib
 import re
 import sys
 import warnings
+from collections.abc import Iterator, Sequence
 from pathlib import Path
-from typing import Iterator, Sequence
 
 from usl.errors import UslWarning
 

@@ -15,12 +15,12 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
 from usl.cli.common import common_options, make_parser, resolve_device, warning_lines
-from usl.evaluation.choices import PICTURE_SELECTIONS, ROWS
 from usl.evaluation.baseline_options import DEFAULT_SPHERE_LEVEL, TRUE_DEPTH_SOURCES
+from usl.evaluation.choices import PICTURE_SELECTIONS, ROWS
 from usl.evaluation.report import TABLE_LAYOUTS  # torch-free, like everything imported here
 
 COMMAND = "usl-eval"

@@ -28,8 +28,9 @@ from __future__ import annotations
 import argparse
 import sys
 import warnings
+from collections.abc import Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Sequence
+from typing import TYPE_CHECKING
 
 from usl.cli.common import common_options, make_parser, resolve_device, warning_lines
 from usl.inference.field_of_view import FieldOfViewWarning
@@ -107,8 +108,8 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 def _predict(args: argparse.Namespace) -> dict[str, ImageResult]:
     """Load the model, predict every image and write its files: what each image gave."""
-    from usl.inference.predict import model_detector, predict_images, read_intrinsics  # torch loads here
     from usl.errors import UslError
+    from usl.inference.predict import model_detector, predict_images, read_intrinsics  # torch loads here
     from usl.records.output_folder import output_folder
 
     K = read_intrinsics(args.k_file) if args.k_file else None

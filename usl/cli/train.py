@@ -24,8 +24,9 @@ import argparse
 import os
 import re
 import sys
+from collections.abc import Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Sequence
+from typing import TYPE_CHECKING, Any
 
 from usl.cli.common import common_options, make_parser, warning_lines
 from usl.engine.command import COMMAND
@@ -86,7 +87,6 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
 def resolve_config(args: argparse.Namespace) -> tuple[Config, dict[str, Any] | None]:
     """The config the arguments ask for and, when resuming, the checkpoint payload."""
     from usl.config import ConfigError, apply_overrides, load_config, to_dict
-
     from usl.engine.checkpoint import checkpoint_config, read_checkpoint
 
     payload = None
@@ -119,7 +119,6 @@ def resolve_run(args: argparse.Namespace) -> tuple[Config, Path, dict[str, Any] 
 def check_new_run(run_dir: Path) -> None:
     """Refuse to start a new training in a folder that holds another one's checkpoints."""
     from usl.config import ConfigError
-
     from usl.engine.checkpoint import CHECKPOINT_DIR
 
     if (run_dir / CHECKPOINT_DIR).is_dir() and any((run_dir / CHECKPOINT_DIR).glob("model_*.pt")):
@@ -129,10 +128,8 @@ def check_new_run(run_dir: Path) -> None:
 def main(argv: Sequence[str] | None = None) -> int:
     args = parse_args(argv)
     from usl.config import ConfigError  # torch loads from here on
-    from usl.errors import UslError
-    from usl.errors import error_line
-
     from usl.engine.checkpoint import CheckpointError
+    from usl.errors import UslError, error_line
 
     try:
         # e.g. a resumed checkpoint's saved keys that this usl no longer has: every process of a

@@ -8,8 +8,8 @@ so each quantity reads on its own axis. Legends sit right of the panels, off the
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
 from usl.engine.run_log import CSV_NAME, read_metrics
 from usl.records.tempfiles import temp_path
@@ -62,7 +62,7 @@ def _plot(axes, rows: Sequence[dict[str, float]], keys: Sequence[str], marker: s
     for key in keys:
         points = [(r["iteration"], r[key]) for r in rows if key in r]
         if points:
-            xs, ys = zip(*points)
+            xs, ys = zip(*points, strict=True)
             axes.plot(xs, ys, marker=marker, linewidth=2.0 if key == "loss" else 1.0, label=key)
             drawn = True
     return drawn
@@ -106,7 +106,7 @@ def curves_figure(run_dir: str | Path, validation_csv: str | None = None):
     losses.set_title("training losses (means over each logging interval)")
     _plot(lr, rows, ["lr"])
     lr.set_title("learning rate")
-    for axes, (title, members) in zip(rest, groups):
+    for axes, (title, members) in zip(rest, groups, strict=True):
         _plot(axes, val_rows, members, marker="o")
         axes.set_title(f"validation: {title}")
     for axes in [losses, lr, *rest]:

@@ -11,17 +11,18 @@ Console lines go through ``tqdm.write`` so the progress bar stays intact.
 from __future__ import annotations
 
 import time
+from collections.abc import Mapping
 from datetime import datetime, timedelta
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
 
 from tqdm import tqdm
 
 from usl.config import Config
 from usl.engine.checkpoint import CheckpointError, resolve_checkpoint
+from usl.engine.command import COMMAND
 from usl.engine.curves import plot_curves
 from usl.engine.run_log import CSV_NAME, tensorboard_events
-from usl.engine.command import COMMAND
 from usl.engine.validation import CSV_NAME as VALIDATION_CSV
 from usl.engine.validation import PeriodicValidation
 from usl.model.usl_model import USLModel

@@ -3,13 +3,12 @@
 from __future__ import annotations
 
 from bisect import bisect_right
-from typing import Iterable, Mapping
+from collections.abc import Iterable, Mapping
 
 import torch
 from torch import nn
 
 from usl.engine.config import OptimConfig
-
 
 WARMUP_FACTOR = 0.001  # the rate at iteration 0 of the warm-up, as a fraction of lr (detectron2's)
 

@@ -9,9 +9,9 @@ files of checkpoints, ``metrics.csv`` and ``curves.png`` named after their write
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Iterator
 
 from usl.records.output_folder import output_folder
 

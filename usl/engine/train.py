@@ -6,8 +6,9 @@ from __future__ import annotations
 import math
 import resource
 import time
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
 
 import torch
 from tqdm import tqdm
@@ -76,7 +77,7 @@ class Meter:
         tensors = [(k, i, v) for k, i, v in flat if isinstance(v, torch.Tensor)]
         if tensors:
             numbers = torch.stack([v.detach().reshape(()).to(torch.float64) for _, _, v in tensors]).tolist()
-            for (key, index, _), number in zip(tensors, numbers):
+            for (key, index, _), number in zip(tensors, numbers, strict=True):
                 out[key][index] = number
         for key, index, value in flat:
             if not isinstance(value, torch.Tensor):

@@ -14,14 +14,14 @@ import torch
 
 from usl.config import Config
 from usl.engine.checkpoint import rng_state, set_rng_state
+from usl.engine.run_log import RunLog
+from usl.errors import UslError
+from usl.evaluation.evaluate import run_evaluation
 from usl.evaluation.model import ModelPredictor
 from usl.evaluation.scene import EvalConfig
 from usl.evaluation.summary import METRICS
-from usl.evaluation.evaluate import run_evaluation
-from usl.engine.run_log import RunLog
 from usl.model.usl_model import USLModel
 from usl.records import RecordsDataset
-from usl.errors import UslError
 
 CSV_NAME = "validation.csv"
 

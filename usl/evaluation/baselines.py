@@ -26,8 +26,9 @@ model only in where z and rho come from and in not deforming the sphere.
 from __future__ import annotations
 
 import zlib
+from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
-from typing import Any, Sequence
+from typing import Any
 
 import torch
 
@@ -134,7 +135,7 @@ class LayoutOnly:
 
     def __call__(self, inputs: Sequence[EvalInput]) -> list[ObjectPredictions]:
         out = []
-        for inp, pred in zip(inputs, self.inner(inputs)):
+        for inp, pred in zip(inputs, self.inner(inputs), strict=True):
             K = inp.frame.K.to(pred.boxes.device)
             verts, faces = sphere_verts(pred.boxes, K, pred.z, pred.rho, self.level)
             out.append(replace(pred, verts=verts, faces=faces))
@@ -163,7 +164,7 @@ class TrueDepth:
 
     def __call__(self, inputs: Sequence[EvalInput]) -> list[ObjectPredictions]:
         out = []
-        for inp, pred in zip(inputs, self.inner(inputs)):
+        for inp, pred in zip(inputs, self.inner(inputs), strict=True):
             K = inp.frame.K.to(pred.verts.device).float()
             z_true = true_depth(inp, pred.instance_ids, pred.rho, self.source).to(pred.z.device)
             z_new = torch.where(torch.isfinite(z_true), z_true, pred.z)

@@ -14,7 +14,8 @@ from __future__ import annotations
 
 import contextlib
 import io
-from typing import Any, Sequence
+from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 import torch
@@ -52,7 +53,7 @@ class CocoDetections:
 
     def __init__(self, category_ids: Sequence[int], category_names: Sequence[str]):
         self.category_ids = list(category_ids)
-        self.categories = [{"id": int(c), "name": n} for c, n in zip(category_ids, category_names)]
+        self.categories = [{"id": int(c), "name": n} for c, n in zip(category_ids, category_names, strict=True)]
         self.images: list[dict[str, Any]] = []
         self.gt: list[dict[str, Any]] = []
         self.dt: dict[str, list[dict[str, Any]]] = {t: [] for t in IOU_TYPES}
@@ -71,13 +72,15 @@ class CocoDetections:
         """Ground truth (contiguous labels, (n, H, W) masks) and detections (labels, scores, xyxy boxes, (N, H, W) masks)."""
         image_id = len(self.images) + 1
         self.images.append({"id": image_id, "height": int(height), "width": int(width)})
-        for label, mask in zip(gt_labels.tolist(), gt_masks.cpu().numpy()):
+        for label, mask in zip(gt_labels.tolist(), gt_masks.cpu().numpy(), strict=True):
             self.gt.append(
                 coco_annotation(
                     len(self.gt) + 1, image_id, self.category_ids[label], encode_mask(mask), mask.sum(), mask_bbox(mask)
                 )
             )
-        for label, score, box, mask in zip(labels.tolist(), scores.tolist(), boxes.tolist(), masks.cpu().numpy()):
+        for label, score, box, mask in zip(
+            labels.tolist(), scores.tolist(), boxes.tolist(), masks.cpu().numpy(), strict=True
+        ):
             common = {"image_id": image_id, "category_id": self.category_ids[label], "score": float(score)}
             self.dt["bbox"].append({**common, "bbox": xyxy_to_xywh(box)})
             self.dt["segm"].append({**common, "segmentation": encode_mask(mask)})
@@ -87,7 +90,7 @@ class CocoDetections:
         out: dict[str, float] = {}
         for iou_type in IOU_TYPES:
             stats = self._run(iou_type)
-            for key, value in zip(("AP", "AP50", "AP75"), stats[:3]):
+            for key, value in zip(("AP", "AP50", "AP75"), stats[:3], strict=True):
                 out[f"{iou_type}/{key}"] = 100.0 * max(float(value), 0.0)
         return out
 

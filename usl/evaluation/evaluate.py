@@ -9,23 +9,24 @@ the table rows' predictors in ``rows``; the pictures in ``pictures`` and their c
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 from tqdm import tqdm
 
 from data_specs import DATASETS, load_dataset_spec
 from usl.data.frames import CategoryIndex
+from usl.errors import UslError
 from usl.evaluation.detection import CocoDetections
 from usl.evaluation.gallery import Gallery
+from usl.evaluation.report import choose_layout
 from usl.evaluation.scene import EvalConfig, evaluate_scene
 from usl.evaluation.summary import DetectionCounts, PredictorSummary, summarize
 from usl.evaluation.types import Predictor
 from usl.evaluation.views import view_selection
-from usl.evaluation.report import choose_layout
 from usl.records import RecordsDataset
-from usl.errors import UslError
 
 
 @dataclass

@@ -16,22 +16,23 @@ from __future__ import annotations
 
 import math
 import re
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 import torch
 
 from usl.data.frames import CategoryIndex
+from usl.errors import UslError
 from usl.evaluation.choices import PICTURE_SELECTIONS
 from usl.evaluation.pictures import evaluation_picture
 from usl.evaluation.scene import EvalConfig, SceneOutcome, evaluate_scene
 from usl.evaluation.types import Predictor
 from usl.evaluation.views import ViewSelection
-from usl.vis.visualize import write_png
 from usl.records import RecordsDataset, frame_pose
-from usl.errors import UslError
+from usl.vis.visualize import write_png
 
 INDEX_NAME = "index.md"
 
@@ -93,7 +94,7 @@ class Gallery:
 
     def scene_done(self, dataset: RecordsDataset, scene_index: int, outcome: SceneOutcome) -> None:
         """Called for every scene as it is evaluated."""
-        for inp, position in zip(outcome.inputs, outcome.positions):
+        for inp, position in zip(outcome.inputs, outcome.positions, strict=True):
             self.inputs[(inp.frame.scene_id, inp.frame.view_id)] = position
         wanted = self.per_scene[scene_index] if scene_index < len(self.per_scene) else 0
         if wanted:

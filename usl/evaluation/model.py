@@ -7,16 +7,16 @@ camera coordinates and need no change.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, Sequence
-
+from typing import Any
 
 from usl.data.frames import FrameData
 from usl.data.transforms import resize_frame
+from usl.errors import UslError
 from usl.evaluation.types import EvalInput
 from usl.model.outputs import ObjectPredictions
-from usl.errors import UslError
 from usl.utils.transfer import to_device
 
 
@@ -52,7 +52,7 @@ class ModelPredictor:
         frames = [inp.frame for inp in inputs]
         resized = frames_for_model(frames, self.max_size)
         preds = self.model.predict(resized, mode=self.mode)
-        return [boxes_to_frame(p, r.size, f.size) for p, r, f in zip(preds, resized, frames)]
+        return [boxes_to_frame(p, r.size, f.size) for p, r, f in zip(preds, resized, frames, strict=True)]
 
 
 # The table row of a model, by how it was trained (``loss.supervision``): Table 1's labels.

@@ -10,13 +10,17 @@ none reaches it, the picture says so (and gives the best score) instead of showi
 
 from __future__ import annotations
 
-from typing import Any, Mapping, Sequence
+from collections.abc import Mapping, Sequence
+from typing import Any
 
 import numpy as np
 import torch
 
 from usl.data.frames import CategoryIndex, decode_frame
 from usl.evaluation.types import EvalInput
+from usl.geometry.cameras import relative_transform, transform_points
+from usl.model.outputs import ObjectPredictions
+from usl.records import RecordsDataset
 from usl.vis.visualize import (
     GRAY,
     birds_eye,
@@ -30,9 +34,6 @@ from usl.vis.visualize import (
     render_overlay,
     to_uint8,
 )
-from usl.geometry.cameras import relative_transform, transform_points
-from usl.model.outputs import ObjectPredictions
-from usl.records import RecordsDataset
 
 
 def spread_positions(num_views: int, exclude: int, count: int) -> list[int]:
@@ -80,7 +81,7 @@ def evaluation_picture(
     image = to_uint8(frame.image)
     scores = pred.scores.tolist() if uses_detections else [None] * len(pred)
     names = [categories.names[int(l)] for l in pred.labels.tolist()]
-    texts = [n + (f" {s:.2f}" if s is not None else "") for n, s in zip(names, scores)]
+    texts = [n + (f" {s:.2f}" if s is not None else "") for n, s in zip(names, scores, strict=True)]
     overlay = render_overlay(image, pred.verts, pred.faces, frame.K, colors)
     if not len(pred):
         found = "no detection at all" if best is None else f"best score {best:.2f}"
@@ -89,7 +90,7 @@ def evaluation_picture(
     cameras = [relative_transform(all_poses[k], frame.cam_to_world) for k in order]
     truth = [inp.true_meshes[i].verts for i in pred.instance_ids.tolist() if i in inp.true_meshes]
     ids = pred.instance_ids.tolist()
-    key = [(c, _legend_line(n, s, rows.get(i), i >= 0)) for c, n, s, i in zip(colors, names, scores, ids)]
+    key = [(c, _legend_line(n, s, rows.get(i), i >= 0)) for c, n, s, i in zip(colors, names, scores, ids, strict=True)]
     notes = [
         (None, f"{frame.scene_id}, view {frame.view_id}"),
         (None, "panels: input + boxes | prediction | top view (white: truth)"),

@@ -18,8 +18,8 @@ camera gets gIoU -1 and no depth (NaN, left out of the mean).
 
 from __future__ import annotations
 
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
-from typing import Iterator, Sequence
 
 import torch
 
@@ -168,7 +168,7 @@ def score_pairs(
     for batch in batch_groups(views, groups, max_bytes):
         result = render_groups(verts, faces, input_pose, views, batch)
         mesh_of.clear()
-        for m, (g, o) in enumerate(zip(result.mesh_group.tolist(), result.mesh_object.tolist())):
+        for m, (g, o) in enumerate(zip(result.mesh_group.tolist(), result.mesh_object.tolist(), strict=True)):
             mesh_of[(batch[g].view, o)] = m
         todo = [(p, mesh_of[(v, o)], v, t) for p, (o, v, t) in enumerate(pair_list) if (v, o) in mesh_of]
         if todo:

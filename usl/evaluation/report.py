@@ -13,9 +13,10 @@ from __future__ import annotations
 import json
 import math
 import statistics
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import Any
 
 from usl.evaluation.summary import PredictorSummary
 from usl.records.atomic import write_text_atomic

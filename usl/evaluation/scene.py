@@ -14,8 +14,9 @@ are means over objects (``usl.evaluation.summary``), per predictor.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
-from typing import Any, Sequence
+from typing import Any
 
 import torch
 
@@ -208,8 +209,8 @@ def _score_all(
             scored = score_pairs(
                 pr.pred.verts, pr.pred.faces, pose, views, pairs, config.occlusion, config.max_render_bytes
             )
-            values = zip(scored.iou.tolist(), scored.giou.tolist(), scored.depth_l1.tolist())
-            for (o, _, v), value in zip(todo, values):
+            values = zip(scored.iou.tolist(), scored.giou.tolist(), scored.depth_l1.tolist(), strict=True)
+            for (o, _, v), value in zip(todo, values, strict=True):
                 pr.scores.setdefault(o, {})[v] = value
 
 
@@ -232,7 +233,7 @@ def _object_rows(
     ``label_name``: the predicted one. Ids are the dataset's, as in its records and COCO export."""
     pred, frame = pr.pred, inp.frame
     shape3d = _shape_metrics(pred, inp, config, device)
-    true_label = dict(zip(frame.instance_ids.tolist(), frame.labels.tolist()))
+    true_label = dict(zip(frame.instance_ids.tolist(), frame.labels.tolist(), strict=True))
     rows = []
     for o, iid in enumerate(pred.instance_ids.tolist()):
         if iid < 0:

@@ -9,8 +9,9 @@ the mean, and how many objects each mean covers is reported next to it.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any, Sequence
+from typing import Any
 
 METRICS = (
     "mask_iou_input",

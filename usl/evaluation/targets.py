@@ -7,8 +7,9 @@ views of the chunk being evaluated: a Hypersim scene has ~100 views x ~50 instan
 
 from __future__ import annotations
 
+from collections.abc import Collection, Sequence
 from dataclasses import dataclass
-from typing import Any, Collection, Sequence
+from typing import Any
 
 import numpy as np
 import torch

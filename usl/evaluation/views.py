@@ -16,8 +16,9 @@ that (object, view) pair is skipped, never scored as 0):
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any, Mapping, Protocol, Sequence
+from typing import Any, Protocol
 
 from usl.errors import UslError
 

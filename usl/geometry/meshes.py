@@ -92,7 +92,7 @@ class Meshes:
             raise ValueError(f"Meshes: got {len(verts)} vertex tensors but {len(faces)} face tensors")
         if len(verts) == 0:
             raise ValueError("Meshes: need at least one mesh (use from_shared_topology for an empty batch)")
-        for i, (v, f) in enumerate(zip(verts, faces)):
+        for i, (v, f) in enumerate(zip(verts, faces, strict=True)):
             _check_verts(v, i)
             _check_faces(f, v.shape[0], i)
         counts = [int(v.shape[0]) for v in verts]
@@ -195,7 +195,7 @@ class Meshes:
         if topo.template is not None:
             return [topo.template] * len(self)
         chunks = topo.faces_packed.split(topo.faces_counts)
-        return [f - int(start) for f, start in zip(chunks, topo.first_vert.tolist())]
+        return [f - int(start) for f, start in zip(chunks, topo.first_vert.tolist(), strict=True)]
 
     def verts_padded(self) -> Tensor:
         """(B, max V_i, 3); a free view for shared topology, zero padded otherwise."""

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import torch
 
@@ -72,7 +72,7 @@ def sample_points_in_groups(
         degenerate = areas.sum(1, keepdim=True) <= 0
         weights = torch.where(degenerate, real, areas)
         local, r = [], []
-        for group, generator in zip(weights.split(list(group_sizes)), generators):
+        for group, generator in zip(weights.split(list(group_sizes)), generators, strict=True):
             if len(group):
                 local.append(torch.multinomial(group, num_samples, replacement=True, generator=generator))
                 shape = (len(group), num_samples, 2)

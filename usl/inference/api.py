@@ -119,6 +119,7 @@ class Model:
                 pred.z.tolist(),
                 pred.rho.tolist(),
                 pred.boxes.tolist(),
+                strict=True,
             )
         ]
         return Scene(objects, pixels, frame.K.double().numpy(), axes, pred, self.categories)

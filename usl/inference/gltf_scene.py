@@ -27,9 +27,9 @@ import trimesh
 from PIL import Image
 
 from usl.data.frames import CategoryIndex
-from usl.vis.visualize import palette
 from usl.geometry.cameras import opencv_to_opengl_camera, unproject
 from usl.model.outputs import ObjectPredictions
+from usl.vis.visualize import palette
 
 AXES = ("gltf", "opencv")
 CAMERA_NODE = "camera"
@@ -66,6 +66,7 @@ def object_meshes(
         pred.z.tolist(),
         pred.rho.tolist(),
         pred.boxes.tolist(),
+        strict=True,
     )
     for name, verts, color, label, score, z, rho, box in objects:
         mesh = trimesh.Trimesh(verts @ flip.T, faces, process=False)

@@ -11,9 +11,9 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Callable, Sequence
 
 import cv2
 import numpy as np
@@ -22,18 +22,18 @@ import trimesh
 
 from data_specs import DATASETS, load_dataset_spec
 from usl.data.frames import CategoryIndex, FrameData
+from usl.errors import UslError
 from usl.evaluation.model import ModelPredictor, load_checkpoint_model
 from usl.evaluation.types import EvalInput
+from usl.geometry.cameras import intrinsics_from_fov, scale_intrinsics
+from usl.inference.field_of_view import auto_fov_deg
 from usl.inference.formats import FORMATS
 from usl.inference.gltf_scene import object_meshes, prediction_scene, scene_glb
 from usl.inference.gltf_viewer import viewer_html
 from usl.model.config import ModelConfig
-from usl.vis.visualize import draw_boxes, palette, render_overlay, write_png
-from usl.geometry.cameras import intrinsics_from_fov, scale_intrinsics
-from usl.inference.field_of_view import auto_fov_deg
 from usl.model.outputs import ObjectPredictions
-from usl.errors import UslError
 from usl.records.names import check_name
+from usl.vis.visualize import draw_boxes, palette, render_overlay, write_png
 
 Detect = Callable[[FrameData], ObjectPredictions]
 
@@ -160,7 +160,10 @@ def overlay_picture(pred: ObjectPredictions, categories: CategoryIndex, image: n
         pred = replace(pred, boxes=pred.boxes * torch.tensor([sx, sy, sx, sy]))
     colors = palette(len(pred))
     overlay = render_overlay(image, pred.verts, pred.faces, K, colors)
-    texts = [f"{categories.names[int(l)]} {float(s):.2f}" for l, s in zip(pred.labels.tolist(), pred.scores.tolist())]
+    texts = [
+        f"{categories.names[int(l)]} {float(s):.2f}"
+        for l, s in zip(pred.labels.tolist(), pred.scores.tolist(), strict=True)
+    ]
     return draw_boxes(overlay, pred.boxes, texts, colors)
 
 
@@ -224,4 +227,4 @@ def model_categories(model_config: ModelConfig) -> CategoryIndex:
         raise UslError(
             f"the checkpoint's model.category_ids {ids} do not match its {len(names)} model.categories {names}"
         )
-    return CategoryIndex([{"id": i, "name": n} for i, n in zip(ids, names)])
+    return CategoryIndex([{"id": i, "name": n} for i, n in zip(ids, names, strict=True)])

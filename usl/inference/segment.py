@@ -7,8 +7,9 @@ string counts), plus the image's ``file_name`` so the file needs no separate ima
 
 from __future__ import annotations
 
+from collections.abc import Iterator, Sequence
 from pathlib import Path
-from typing import Any, Iterator, Sequence
+from typing import Any
 
 import cv2
 import numpy as np
@@ -49,7 +50,7 @@ def coco_results(segmentation: Segmentation, image_id: int, file_name: str) -> l
             "segmentation": rle,
         }
         for category, box, score, rle in zip(
-            segmentation.category_ids, xywh, segmentation.scores, encode_masks(segmentation.masks)
+            segmentation.category_ids, xywh, segmentation.scores, encode_masks(segmentation.masks), strict=True
         )
     ]
 
@@ -64,7 +65,7 @@ def segment_files(
     try:
         for start in range(0, len(paths), batch_size):
             batch = [Path(p) for p in paths[start : start + batch_size]]
-            for offset, (path, result) in enumerate(zip(batch, segmenter([read_rgb(p) for p in batch]))):
+            for offset, (path, result) in enumerate(zip(batch, segmenter([read_rgb(p) for p in batch]), strict=True)):
                 yield start + offset, path, result
             bar.update(len(batch))
     finally:

@@ -11,6 +11,7 @@ from usl.losses.regularizers import (
     offset_l2_loss,
     offset_l2_per_mesh,
 )
+from usl.losses.schedule import PiecewiseLinear
 from usl.losses.silhouette import (
     SilhouetteBCE,
     l2d_loss,
@@ -19,7 +20,6 @@ from usl.losses.silhouette import (
     silhouette_chamfer_loss,
     soft_iou_loss,
 )
-from usl.losses.schedule import PiecewiseLinear
 from usl.losses.total import LossWeights, combine_losses
 
 __all__ = [

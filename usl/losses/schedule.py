@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from bisect import bisect_right
 from dataclasses import dataclass
+from itertools import pairwise
 
 
 @dataclass(frozen=True)
@@ -29,7 +30,7 @@ class PiecewiseLinear:
             raise ValueError(
                 f"schedule: {len(self.iters)} iters but {len(self.values)} values; give one value per knot"
             )
-        if any(b <= a for a, b in zip(self.iters, self.iters[1:])):
+        if any(b <= a for a, b in pairwise(self.iters)):
             raise ValueError(f"schedule: iters must increase strictly, got {list(self.iters)}")
         if any(v < 0 for v in self.values):
             raise ValueError(f"schedule: values must be >= 0, got {list(self.values)}")

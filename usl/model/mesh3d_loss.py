@@ -11,9 +11,9 @@ averaging of per-GPU losses gives exactly the whole batch's gradient.
 
 from __future__ import annotations
 
-import torch
-
 from dataclasses import dataclass
+
+import torch
 
 from usl.data.samples import MultiViewSample
 from usl.geometry import Meshes, sample_points_from_meshes

@@ -23,11 +23,9 @@ from typing import NamedTuple
 
 import torch
 
-from usl.model.config import LossConfig
 from usl.data.samples import MultiViewSample
 from usl.geometry import Meshes, MeshTemplate, sample_points_in_groups
 from usl.geometry.cameras import relative_transform, transform_points
-from usl.utils.transfer import to_device
 from usl.losses import (
     edge_length_per_mesh,
     l2d_loss,
@@ -39,8 +37,10 @@ from usl.losses import (
     silhouette_chamfer_loss,
     soft_iou_loss,
 )
+from usl.model.config import LossConfig
 from usl.render import PaddedMasks, render_dynamic
 from usl.render.masks import pad_cat
+from usl.utils.transfer import to_device
 
 Tensor = torch.Tensor
 
@@ -163,7 +163,7 @@ def _means(terms: dict[str, tuple[Tensor, Tensor]]) -> dict[str, Tensor]:
     all in one stacked reduction, without reading the device."""
     values = torch.stack([value.to(torch.float32) for value, _ in terms.values()])
     keep = torch.stack([mask.to(torch.float32) for _, mask in terms.values()])
-    return dict(zip(terms, ((values * keep).sum(dim=1) / keep.sum(dim=1).clamp(min=1.0)).unbind()))
+    return dict(zip(terms, ((values * keep).sum(dim=1) / keep.sum(dim=1).clamp(min=1.0)).unbind(), strict=True))
 
 
 def _gather_pairs(
@@ -186,7 +186,7 @@ def _gather_pairs(
     )
     pair_rows: list[tuple[int, int, int, int]] = []  # per pair: object row, view row, sample, is input view
     first_row = 0
-    for index, (sample, num_objects) in enumerate(zip(samples, counts)):
+    for index, (sample, num_objects) in enumerate(zip(samples, counts, strict=True)):
         num_views, start = len(sample.views), first_row
         first_row += num_objects
         if not num_objects:

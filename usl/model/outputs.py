@@ -28,10 +28,10 @@ class ObjectPredictions:
     def __len__(self) -> int:
         return int(self.boxes.shape[0])
 
-    def to(self, device: torch.device | str) -> "ObjectPredictions":
+    def to(self, device: torch.device | str) -> ObjectPredictions:
         return ObjectPredictions(**{f.name: getattr(self, f.name).to(device) for f in fields(self)})
 
-    def select(self, keep: torch.Tensor) -> "ObjectPredictions":
+    def select(self, keep: torch.Tensor) -> ObjectPredictions:
         """Subset of objects (boolean mask or indices); faces stay shared."""
         values = {f.name: getattr(self, f.name) for f in fields(self)}
         return ObjectPredictions(**{k: (v if k == "faces" else v[keep]) for k, v in values.items()})

@@ -12,9 +12,9 @@ batches, puts anchors over the padding and changes the proposals).
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Sequence, Union
 
 import numpy as np
 import torch
@@ -60,7 +60,7 @@ class Segmentation:
         return len(self.scores)
 
 
-def detector_for_weights(path: Union[str, Path], cfg: SegmenterConfig) -> tuple[MaskRCNN, tuple[int, ...]]:
+def detector_for_weights(path: str | Path, cfg: SegmenterConfig) -> tuple[MaskRCNN, tuple[int, ...]]:
     """The COCO detector a weights file holds, loaded, in eval mode, with its class -> COCO id table.
 
     detectron2 ``.pkl``: PointRend if it has PointRend's heads, else Mask R-CNN (80 classes);
@@ -117,8 +117,8 @@ class InstanceSegmenter:
 
     @classmethod
     def from_weights(
-        cls, path: Union[str, Path], cfg: SegmenterConfig | None = None, device: Union[str, torch.device] = "cpu"
-    ) -> "InstanceSegmenter":
+        cls, path: str | Path, cfg: SegmenterConfig | None = None, device: str | torch.device = "cpu"
+    ) -> InstanceSegmenter:
         cfg = cfg or SegmenterConfig()
         detector, category_ids = detector_for_weights(path, cfg)
         return cls(detector.to(device), category_ids, cfg)
@@ -148,7 +148,7 @@ class InstanceSegmenter:
         results: list[Segmentation | None] = [None] * len(images)
         for size, indices in groups.items():
             detections = self.detector.detect(torch.stack([inputs[i] for i in indices]), [size] * len(indices))
-            for index, found in zip(indices, detections):
+            for index, found in zip(indices, detections, strict=True):
                 results[index] = self._postprocess(found, images[index].shape[:2])
         return results
 

@@ -11,18 +11,18 @@ boxes of the input view's objects (the frustum of each object is its true 2D box
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence
 
 import torch
 from torch import nn
 
-from usl.model.config import LossConfig, ModelConfig
 from usl.data.frames import FrameData
 from usl.data.samples import MultiViewSample
 from usl.geometry import cube_to_frustum
 from usl.losses import combine_losses
 from usl.model.backbone import IMAGENET_MEAN, IMAGENET_STD, ShapeSpec
+from usl.model.config import LossConfig, ModelConfig
 from usl.model.detector import ImageList, MaskRCNN, MultiScaleRoIAlign
 from usl.model.detector.roi_heads import CANONICAL_LEVEL, POOLER_SAMPLING_RATIO
 from usl.model.heads import LayoutHead, LayoutPrediction, ShapeHead, ShapePrediction
@@ -127,7 +127,7 @@ class USLModel(nn.Module):
         flat_labels = torch.cat(labels).long()
         counts = [len(b) for b in boxes]
         flat_boxes = torch.cat(boxes)
-        flat_K = torch.cat([k.float().expand(n, 3, 3) for k, n in zip(K, counts)])
+        flat_K = torch.cat([k.float().expand(n, 3, 3) for k, n in zip(K, counts, strict=True)])
         pooled = self.layout_pooler(features, boxes)
         layout = self.layout_head(pooled, flat_labels, flat_boxes, flat_K)
         shape = self.shape_head(features, boxes, pooled)
@@ -251,7 +251,7 @@ def _split_predictions(
             faces=faces,
             instance_ids=i.long(),
         )
-        for b, l, s, zi, ri, v, i in zip(boxes, labels, scores, z, rho, verts, ids)
+        for b, l, s, zi, ri, v, i in zip(boxes, labels, scores, z, rho, verts, ids, strict=True)
     ]
 
 

@@ -13,11 +13,13 @@ from __future__ import annotations
 
 import json
 import os
+from collections.abc import Iterable
 from dataclasses import asdict
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any
 
 from usl.errors import UslError
+
 from .atomic import write_json_atomic
 from .schema import SCHEMA_VERSION, file_schema_version, shard_file
 from .shards import ShardResult, shard_paths, shard_temp_path, verify_file

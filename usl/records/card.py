@@ -15,9 +15,9 @@ from typing import Any
 import yaml
 
 from data_specs import load_dataset_spec, load_schema_spec
+from usl.errors import UslError
 
 from .atomic import write_text_atomic
-from usl.errors import UslError
 from .schema import SCHEMA_VERSION
 
 CARD = "README.md"

@@ -23,19 +23,21 @@ import shutil
 import socket
 import threading
 import time
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager, suppress
-from functools import lru_cache
+from functools import cache
 from pathlib import Path
-from typing import Any, Callable, Iterator
+from typing import Any
 
 from usl.errors import UslError
+
 from .tempfiles import process_token, temp_files_of
 
 HEARTBEAT_SECONDS = 5.0
 STALE_AFTER_SECONDS = 300.0
 
 
-@lru_cache(maxsize=None)
+@cache
 def host_identity() -> str:
     """Processes with equal identities see the same pids (same kernel boot and pid namespace)."""
     parts = [socket.gethostname()]
@@ -125,7 +127,7 @@ class Owner:
             "started": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
         }
 
-    def __enter__(self) -> "Owner":
+    def __enter__(self) -> Owner:
         self.owners_dir.mkdir(parents=True, exist_ok=True)  # a full or read-only disk: the caller's storage_faults
         self.claims_dir.mkdir(exist_ok=True)
         _create_exclusive(self.file, self.info())

@@ -12,16 +12,18 @@ exists, every image it names has been written.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 from urllib.parse import quote
 
 from tqdm import tqdm
 
+from usl.errors import UslError
+
 from .atomic import write_json_atomic
 from .encode import image_bytes
-from usl.errors import UslError
 from .manifest import usl_version
 from .reader import RecordsDataset
 

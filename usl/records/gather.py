@@ -16,10 +16,10 @@ from typing import Any
 
 from tqdm import tqdm
 
-from .build_state import BUILD_FILE, STATE_DIR, BuildState, identity_difference, read_build_file, shard_name
-from .claims import Owner
 from usl.errors import UslError
 
+from .build_state import BUILD_FILE, STATE_DIR, BuildState, identity_difference, read_build_file, shard_name
+from .claims import Owner
 from .manifest import SHARD_FILE_KEYS, build_manifest, check_relative, publish_dataset
 from .names import check_name
 from .schema import SCHEMA_VERSION, file_schema_version, shard_file
@@ -120,7 +120,7 @@ def gather(parts: list[Path], out: Path, progress: bool = False) -> GatherSummar
         raise UslError("gather needs at least one part folder")
     descriptions = [read_build_file(part) for part in parts]
     first = descriptions[0]
-    for part, description in zip(parts[1:], descriptions[1:]):
+    for part, description in zip(parts[1:], descriptions[1:], strict=True):
         difference = identity_difference(description, first)
         if difference:
             raise UslError(f"{part}: holds {difference} than {parts[0]}; gather only parts of one build")

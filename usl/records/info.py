@@ -9,8 +9,9 @@ from typing import Any
 import cv2
 import numpy as np
 
-from .encode import decode_image, decode_mask, decoding
 from usl.errors import UslError, one_line
+
+from .encode import decode_image, decode_mask, decoding
 from .manifest import load_manifest
 from .reader import RecordsDataset
 from .shards import read_shard_table
@@ -59,11 +60,11 @@ def overlay_instances(image: np.ndarray, instances: list[dict[str, Any]], names:
     """Image with each instance's mask tinted, its box drawn and its category written."""
     out = image.astype(np.float32)
     colours = _palette(max(len(instances), 1))
-    for colour, inst in zip(colours, instances):
+    for colour, inst in zip(colours, instances, strict=True):
         mask = decode_mask(inst["mask"])
         out[mask] = 0.5 * out[mask] + 0.5 * colour
     out = out.astype(np.uint8)
-    for colour, inst in zip(colours, instances):
+    for colour, inst in zip(colours, instances, strict=True):
         x0, y0, x1, y1 = (int(round(v)) for v in inst["box_xyxy"])
         cv2.rectangle(out, (x0, y0), (x1 - 1, y1 - 1), tuple(int(c) for c in colour), 1)
         label = f"{names.get(inst['category_id'], inst['category_id'])}#{inst['instance_id']}"

@@ -6,9 +6,10 @@ import json
 from pathlib import Path, PurePosixPath
 from typing import Any
 
+from usl.errors import UslError
+
 from .atomic import write_json_atomic
 from .card import write_dataset_card
-from usl.errors import UslError
 from .schema import SCHEMA_VERSION, check_version
 
 MANIFEST = "manifest.json"

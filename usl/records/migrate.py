@@ -31,11 +31,12 @@ from typing import Any
 import pyarrow.parquet as pq
 from tqdm import tqdm
 
+from usl.errors import UslError
+
 from .atomic import write_json_atomic
 from .card import check_card_writable
-from usl.errors import UslError
-from .output_folder import output_folder
 from .manifest import SHARD_FILE_KEYS, check_relative, dataset_metadata, load_manifest, publish_dataset
+from .output_folder import output_folder
 from .schema import SCHEMA_VERSION, dataset_schema, read_metadata, shard_file
 from .shards import _TableStream, raise_if_invalid, verify_file
 from .upgrade import upgrade_table
@@ -186,7 +187,7 @@ def _migrate(root: Path, progress: bool) -> MigrationSummary:
             state["new"][old["file"]] = done
             write_json_atomic(state_path, state)
         shard[table] = done
-    for split, shard, table in jobs:  # step 2: only renames (every staged file was verified above)
+    for _split, shard, table in jobs:  # step 2: only renames (every staged file was verified above)
         staged = root / staged_file(shard[table]["file"])
         if staged.exists():
             os.replace(staged, root / shard[table]["file"])

@@ -8,9 +8,9 @@ that turns read-only says what is kept and how to go on (``storage_faults``).
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Iterator
 
 from .claims import sole_writer
 from .storage_faults import RERUN, storage_faults

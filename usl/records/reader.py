@@ -8,9 +8,10 @@ from __future__ import annotations
 
 import os
 from bisect import bisect_right
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterator, Sequence
+from typing import Any
 
 import numpy as np
 import pyarrow.parquet as pq
@@ -18,6 +19,7 @@ import torch
 from torch.utils.data import IterableDataset, get_worker_info
 
 from usl.errors import UslError, one_line
+
 from .manifest import load_manifest
 from .schema import read_metadata
 from .shards import VERIFY_MODES, open_shard, verify_file

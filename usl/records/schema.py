@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import json
-from functools import lru_cache
+from functools import cache
 from pathlib import Path
 from typing import Any
 
@@ -11,7 +11,6 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from data_specs import load_schema_spec
-
 from usl.errors import UslError, one_line
 
 SCHEMA_VERSION = 3  # what writers produce; readers also read every version in KNOWN_VERSIONS
@@ -49,7 +48,7 @@ def _arrow_field(spec: dict[str, Any], all_nullable: bool) -> pa.Field:
     return pa.field(spec["name"], _arrow_type(spec["type"], all_nullable), nullable=nullable, metadata=metadata)
 
 
-@lru_cache(maxsize=None)
+@cache
 def table_schema(table: str, version: int = SCHEMA_VERSION) -> pa.Schema:
     """Arrow schema of ``frames`` or ``objects`` (field docs as field metadata, no dataset metadata).
 

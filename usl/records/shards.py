@@ -20,17 +20,19 @@ import contextlib
 import hashlib
 import os
 import uuid
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterable, Iterator, Sequence
+from typing import Any
 from urllib.parse import quote
 
 import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from .encode import SceneRecord, Skip
 from usl.errors import UslError, one_line
+
+from .encode import SceneRecord, Skip
 from .schema import dataset_schema, required_fields, shard_file, table_schema
 from .tempfiles import process_token, temp_path
 
@@ -178,7 +180,7 @@ def check_view_order(scene_id: str, scene_ids: Sequence[str], views: Sequence[in
 
     Returns the new last view, so a scene can be checked piece by piece as it streams.
     """
-    for row_scene, view in zip(scene_ids, views):
+    for row_scene, view in zip(scene_ids, views, strict=True):
         if row_scene != scene_id:
             raise ValueError(f"scene {scene_id!r}: a frame row carries another scene_id ({row_scene!r})")
         if last is not None and view <= last:
@@ -237,7 +239,7 @@ class FrameSink:
         if self._spill is not None:
             self._spill.abort()
 
-    def __enter__(self) -> "FrameSink":
+    def __enter__(self) -> FrameSink:
         return self
 
     def __exit__(self, exc_type, exc, tb) -> None:
@@ -349,7 +351,7 @@ class ShardWriter:
         if self._objects is not None:
             self._objects.abort()
 
-    def __enter__(self) -> "ShardWriter":
+    def __enter__(self) -> ShardWriter:
         return self
 
     def __exit__(self, exc_type, exc, tb) -> None:

@@ -9,9 +9,9 @@ pyarrow or ``torch.save`` (which hides the ENOSPC in a chained exception), if at
 from __future__ import annotations
 
 import errno
+from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Iterator
 
 from usl.errors import UslError
 

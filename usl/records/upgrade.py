@@ -39,7 +39,7 @@ def _step(table: pa.Table, name: str, version: int) -> pa.Table:
     """The columns of a ``version`` table in schema ``version + 1``."""
     target = table_schema(name, version + 1)
     fields, columns = [], []
-    for field, column in zip(table.schema, table.columns):
+    for field, column in zip(table.schema, table.columns, strict=True):
         new = target.field(field.name)
         if column.num_chunks == 0:  # an empty read has no chunks to convert
             column = pa.chunked_array([pa.array([], field.type)])

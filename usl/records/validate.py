@@ -7,8 +7,9 @@ where it applies, the scene and view, so a broken conversion can be fixed in one
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 import pyarrow as pa
@@ -16,9 +17,10 @@ import pyarrow.parquet as pq
 import yaml
 from tqdm import tqdm
 
+from usl.errors import UslError, one_line
+
 from .card import CARD, card_configs
 from .encode import decode_depth, decode_image, decode_mask, encode_mask
-from usl.errors import UslError, one_line
 from .manifest import load_manifest
 from .schema import (
     HF_METADATA_KEY,

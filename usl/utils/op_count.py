@@ -356,7 +356,7 @@ class _FunctionCounter(TorchFunctionMode):
         tensors = [*_tensors(args), *_tensors(kwargs)]
         accelerator = any(t.device.type != "cpu" for t in tensors)
         on_host = [self._on_host(t, accelerator) for t in tensors]
-        if not all(on_host) and any(host and t.dim() > 0 for host, t in zip(on_host, tensors)):
+        if not all(on_host) and any(host and t.dim() > 0 for host, t in zip(on_host, tensors, strict=True)):
             self.result.uploads += 1
             self._sync("host operand")
         result = func(*args, **kwargs)

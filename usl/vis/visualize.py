@@ -16,17 +16,17 @@ Colours follow the object index, so one object has one colour in every panel.
 from __future__ import annotations
 
 import colorsys
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
 import cv2
 import numpy as np
 import torch
 
+from usl.errors import UslError
 from usl.geometry import Meshes
 from usl.geometry.cameras import unproject
 from usl.render import HardRender, rasterize_hard
-from usl.errors import UslError
 
 Tensor = torch.Tensor
 GRAY = (128, 128, 128)
@@ -53,7 +53,7 @@ def draw_boxes(
     out = image.copy()
     thickness = max(1, round(min(out.shape[:2]) / 300))
     scale = max(0.35, min(out.shape[:2]) / 900)
-    for box, text, color in zip(boxes.tolist(), texts, colors):
+    for box, text, color in zip(boxes.tolist(), texts, colors, strict=True):
         x0, y0, x1, y1 = (int(round(v)) for v in box)
         cv2.rectangle(out, (x0, y0), (x1 - 1, y1 - 1), color, thickness, cv2.LINE_AA)
         (tw, th), base = cv2.getTextSize(text, FONT, scale, 1)
@@ -124,7 +124,7 @@ def paint_masks(
 ) -> np.ndarray:
     """Masks (n, H, W) filled over a dimmed copy of ``image``."""
     out = image.astype(np.float32) * 0.5
-    for mask, color in zip(masks, colors):
+    for mask, color in zip(masks, colors, strict=True):
         out[mask] = (1 - alpha) * out[mask] + alpha * np.asarray(color, np.float32)
     return out.clip(0, 255).astype(np.uint8)
 
@@ -172,7 +172,7 @@ def birds_eye(
         cv2.line(canvas, tuple(a[0]), tuple(a[1]), (55, 55, 55), 1)
         cv2.line(canvas, tuple(b[0]), tuple(b[1]), (55, 55, 55), 1)
     layer = canvas.copy()
-    for xz, color in zip(footprints, colors):
+    for xz, color in zip(footprints, colors, strict=True):
         cv2.fillConvexPoly(layer, cv2.convexHull(pix(xz)), color, cv2.LINE_AA)
     canvas = cv2.addWeighted(layer, 0.7, canvas, 0.3, 0)
     for xz in outlines:

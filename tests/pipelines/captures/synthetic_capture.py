@@ -176,7 +176,7 @@ def _write_frames(capture: RenderedCapture, folder: Path, depth: bool = True) ->
     (folder / "images").mkdir(parents=True, exist_ok=True)
     if depth:
         (folder / "depth").mkdir(exist_ok=True)
-    for name, rgb, metres in zip(capture.names, capture.images, capture.depth):
+    for name, rgb, metres in zip(capture.names, capture.images, capture.depth, strict=True):
         cv2.imwrite(str(folder / "images" / name), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
         if depth:
             cv2.imwrite(str(folder / "depth" / name), np.round(metres * 1000).astype(np.uint16))
@@ -227,7 +227,7 @@ def write_colmap_text(
     fx, fy, cx, cy = (float(v) for v in (capture.K[0, 0], capture.K[1, 1], capture.K[0, 2], capture.K[1, 2]))
     (model / "cameras.txt").write_text(f"1 PINHOLE {capture.width} {capture.height} {fx!r} {fy!r} {cx!r} {cy!r}\n")
     images, points = [], []
-    for k, (name, pose, metres) in enumerate(zip(capture.names, capture.cam_to_world, capture.depth)):
+    for k, (name, pose, metres) in enumerate(zip(capture.names, capture.cam_to_world, capture.depth, strict=True)):
         world_to_cam = np.linalg.inv(pose)
         rows, cols = np.nonzero(metres > 0)
         pick = rng.choice(rows.size, min(points_per_frame, rows.size), replace=False)
@@ -260,7 +260,7 @@ def write_detections(capture: RenderedCapture, folder: Path, seed: int = 0) -> N
     decoy = np.zeros((capture.height, capture.width), bool)
     decoy[: capture.height // 6, : capture.width // 5] = True
     results = []
-    for k, (name, masks) in enumerate(zip(capture.names, capture.masks)):
+    for k, (name, masks) in enumerate(zip(capture.names, capture.masks, strict=True)):
         # usl-segment writes file names as given on its command line: relative or absolute
         file_name = f"images/{name}" if k % 2 else str((folder / "images" / name).resolve())
         for obj, mask in masks.items():

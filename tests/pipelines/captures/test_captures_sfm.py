@@ -3,7 +3,6 @@ metric from its depth maps, and checked against the renderer's truth."""
 
 from __future__ import annotations
 
-
 import numpy as np
 import pytest
 

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
+from pipelines.hypersim.cli import main
 from tests.pipelines.hypersim.hypersim_fixture import (
     SyntheticScene,
     edit_hdf5,
@@ -18,8 +19,6 @@ from tests.pipelines.hypersim.hypersim_fixture import (
     write_scene,
     write_split_csv,
 )
-
-from pipelines.hypersim.cli import main
 
 NAN_PATCH = (slice(10, 16), slice(20, 30))  # rows, cols of NaN depth in ai_001_001/cam_00 frame 4
 MIN_PIXELS = 6

@@ -4,11 +4,11 @@ import shutil
 
 import pyarrow.parquet as pq
 import pytest
-from tests.pipelines.hypersim.hypersim_inputs import convert
 
 from pipelines.hypersim.cli import main
-from usl.records.schema import file_schema_version
+from tests.pipelines.hypersim.hypersim_inputs import convert
 from usl.records import RecordsDataset, decode_image, load_manifest
+from usl.records.schema import file_schema_version
 from usl.records.validate import validate_dataset
 
 

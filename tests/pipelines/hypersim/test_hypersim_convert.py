@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 import torch
-from tests.pipelines.hypersim.hypersim_inputs import MIN_PIXELS, NAN_PATCH
-from tests.pipelines.hypersim.hypersim_fixture import render
 
+from tests.pipelines.hypersim.hypersim_fixture import render
+from tests.pipelines.hypersim.hypersim_inputs import MIN_PIXELS, NAN_PATCH
 from usl.geometry.cameras import project, scale_intrinsics, transform_points, unproject
 from usl.records import RecordsDataset, decode_depth, decode_image, decode_mask, frame_K, frame_pose, load_manifest
 from usl.records.validate import validate_dataset
@@ -152,7 +152,7 @@ def expected_categories(inputs, rows):
     counts = {}
     for row in rows:
         truth = truth_for(inputs, row)
-        for i, s in zip(truth.instance.ravel(), truth.semantic.ravel()):
+        for i, s in zip(truth.instance.ravel(), truth.semantic.ravel(), strict=True):
             if i >= 1 and 1 <= s <= 40:
                 counts.setdefault(int(i), np.zeros(41, int))[s] += 1
     return {i: int(np.argmax(c)) for i, c in counts.items()}

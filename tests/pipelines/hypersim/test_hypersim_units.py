@@ -7,14 +7,6 @@ import h5py
 import numpy as np
 import pytest
 import torch
-from tests.pipelines.hypersim.hypersim_fixture import (
-    CANONICAL_M,
-    TILT_SHIFT_M,
-    make_scene,
-    render,
-    write_exr,
-    write_hdf5,
-)
 
 from pipelines.hypersim.camera import (
     check_camera_model,
@@ -28,9 +20,17 @@ from pipelines.hypersim.metadata import read_camera_csv, read_meters_per_asset_u
 from pipelines.hypersim.paths import FrameSkip, TrajectoryPaths
 from pipelines.hypersim.resample import Resampler
 from pipelines.hypersim.tonemap import apply_tonemap, percentile, tonemap_scale
+from tests.pipelines.hypersim.hypersim_fixture import (
+    CANONICAL_M,
+    TILT_SHIFT_M,
+    make_scene,
+    render,
+    write_exr,
+    write_hdf5,
+)
+from usl.errors import UslError
 from usl.geometry.cameras import project, scale_intrinsics
 from usl.records import make_instance
-from usl.errors import UslError
 
 # --- cameras -------------------------------------------------------------------------------------
 
@@ -274,7 +274,7 @@ def test_category_votes_count_pixels_per_label():
     semantic = rng.integers(-1, 42, (20, 30)).astype(np.int16)
     ids, votes = category_votes(instance, semantic)
     assert ids.tolist() == sorted(set(instance[instance >= 1].tolist()))
-    for instance_id, row in zip(ids, votes):
+    for instance_id, row in zip(ids, votes, strict=True):
         mask = instance == instance_id
         for label in range(1, 41):
             assert row[label] == ((semantic == label) & mask).sum()

@@ -12,13 +12,12 @@ from __future__ import annotations
 import json
 import struct
 import zlib
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterable, Iterator
 
 import cv2
 import numpy as np
-
 from pycocotools import mask as mask_utils
 
 from usl.geometry.cameras import look_at

@@ -18,8 +18,8 @@ from pipelines.scannet.cli import main
 from pipelines.scannet.convert import SKIP_DEPTH, SKIP_POSE, ConvertOptions, ScanUnit, build_scene
 from pipelines.scannet.scannet_labels import ScanNetLabelsSource
 from tests.pipelines.scannet.synthetic_scan import SyntheticScan, write_label_map, write_labels, write_sens
-from usl.records.schema import file_schema_version
 from usl.records import RecordsDataset, decode_depth, decode_image, decode_mask, load_manifest
+from usl.records.schema import file_schema_version
 from usl.records.validate import validate_dataset
 
 SENS_SCENE, EXPORTED_SCENE = "scene0001_00", "scene0002_00"
@@ -114,7 +114,7 @@ def test_exported_scan_gives_the_same_records(converted):
     a = RecordsDataset(converted, "train").read_scene(SENS_SCENE)
     b = RecordsDataset(converted, "val").read_scene(EXPORTED_SCENE)
     assert [r["view_id"] for r in a] == [r["view_id"] for r in b]
-    for ra, rb in zip(a[::10], b[::10]):
+    for ra, rb in zip(a[::10], b[::10], strict=True):
         assert ra["image"] == rb["image"] and ra["depth"] == rb["depth"]
         np.testing.assert_allclose(ra["K"], rb["K"], rtol=1e-6)  # .sens stores float32
         np.testing.assert_allclose(ra["cam_to_world"], rb["cam_to_world"], atol=1e-6)
@@ -273,6 +273,6 @@ def test_inside_a_build_a_scan_streams_its_rows_to_a_spill_file(synthetic, tmp_p
     assert streamed.skips == in_memory.skips
     spilled = pq.read_table(streamed.frames_file).to_pylist()
     assert len(spilled) == len(in_memory.frames) == 120 - len(synthetic.lost)
-    for a, b in zip(spilled, in_memory.frames):
+    for a, b in zip(spilled, in_memory.frames, strict=True):
         assert (a["view_id"], a["image"], a["depth"], a["K"]) == (b["view_id"], b["image"], b["depth"], b["K"])
         assert json.dumps(a["instances"]) == json.dumps(b["instances"])  # NaN depth_min compares equal as text

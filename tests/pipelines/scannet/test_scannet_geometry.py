@@ -7,15 +7,14 @@ import numpy as np
 import pytest
 from pycocotools import mask as mask_utils
 
-from pipelines.scannet.convert import ConvertOptions, track_scan
+from pipelines.scannet.convert import ConvertOptions, open_scan, track_scan
 from pipelines.scannet.grid import OutputGrid
 from pipelines.scannet.quality import tracking_quality
-from pipelines.scannet.convert import open_scan
 from pipelines.scannet.scan import Calibration, half_pixel_intrinsics
 from pipelines.scannet.scannet_labels import ScanNetLabelsSource
-from tests.pipelines.scannet.synthetic_scan import SyntheticScan
 from pipelines.scannet.tracker import TrackerConfig
 from pipelines.scannet.warp import DepthWarp
+from tests.pipelines.scannet.synthetic_scan import SyntheticScan
 
 # scene0000_00's intrinsic_color.txt / intrinsic_depth.txt (integer pixel centres, as ScanNet stores them)
 SCANNET_COLOR = [[1169.621094, 0, 646.295044, 0], [0, 1167.105103, 489.927032, 0], [0, 0, 1, 0], [0, 0, 0, 1]]
@@ -101,7 +100,9 @@ def test_warping_keeps_tracks_whole_at_large_stride(synthetic):
             options = ConvertOptions(stride=20, size=None, warp=warp, tracker=TrackerConfig(min_track_frames=2))
             tracked = track_scan(scan, labels.open_scan(scan), grid, options)
             observations = [
-                (f, t.track_id, d.source_id) for t in tracked.tracks for f, d in zip(t.frames, t.detections)
+                (f, t.track_id, d.source_id)
+                for t in tracked.tracks
+                for f, d in zip(t.frames, t.detections, strict=True)
             ]
             quality = tracking_quality(observations)
             assert quality.purity == 1.0

@@ -9,8 +9,8 @@ import pytest
 from data_specs import load_dataset_spec
 from pipelines.scannet.cli import main
 from pipelines.scannet.model_masks import segments_dir
-from tests.pipelines.scannet.synthetic_scan import SyntheticScan, write_sens
 from tests.model.detectron2_fixtures import POINTREND, write_random_checkpoint
+from tests.pipelines.scannet.synthetic_scan import SyntheticScan, write_sens
 from usl.model.segmenter import InstanceSegmenter
 from usl.records import RecordsDataset
 from usl.records.validate import validate_dataset

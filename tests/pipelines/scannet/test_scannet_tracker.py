@@ -55,7 +55,7 @@ def run(tracker, frames) -> list[tuple[int, int, int]]:
     observations = []
     for t, dets in enumerate(frames):
         ids = tracker.step(t, [d for d, _ in dets])
-        observations += [(t, track_id, true_id) for track_id, (_, true_id) in zip(ids, dets)]
+        observations += [(t, track_id, true_id) for track_id, (_, true_id) in zip(ids, dets, strict=True)]
     return observations
 
 

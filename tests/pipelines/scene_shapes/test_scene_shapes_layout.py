@@ -14,9 +14,9 @@ from pipelines.scene_shapes.plan import PlanConfig, plan_shards, split_counts, s
 from pipelines.scene_shapes.primitives import BODY
 from pipelines.scene_shapes.scene import SceneConfig, SceneUnit, build_scene
 from pipelines.scene_shapes.shapes import ShapeModel, procedural_refs
+from usl.errors import UslError
 from usl.geometry.cameras import project
 from usl.records import decode_depth, decode_mask
-from usl.errors import UslError
 
 CATEGORY_IDS = (("chair", 1), ("sofa", 2), ("table", 3))
 FRACTIONS = (("train", 0.8), ("val", 0.1), ("test", 0.1))
@@ -100,7 +100,7 @@ def test_mask_matches_the_analytic_projection_of_a_convex_box():
         np.random.default_rng(0),
     )
     world = model.vertices @ transform[:3, :3].T + transform[:3, 3]
-    for view, pose in zip(views, layout.cam_to_world):
+    for view, pose in zip(views, layout.cam_to_world, strict=True):
         cam = (world - pose[:3, 3]) @ pose[:3, :3]
         uv, _ = project(torch.as_tensor(cam), torch.as_tensor(layout.K))
         polygon = uv.numpy()[ConvexHull(uv.numpy()).vertices]

@@ -13,8 +13,8 @@ from pipelines.scene_shapes.mesh_root import (
     load_mesh_model,
 )
 from pipelines.scene_shapes.shapes import generate_procedural, procedural_source_id
-from usl.records import RecordsDataset, load_manifest
 from usl.errors import UslError
+from usl.records import RecordsDataset, load_manifest
 
 # Synset ids as in ShapeNet; 03001627 is a valid octal literal for YAML 1.1, a classic pitfall.
 SYNSETS = {"03001627": "chair", "04256520": "sofa", "04379243": "table"}

@@ -5,11 +5,11 @@ import json
 
 import numpy as np
 import pytest
-from tests.pipelines.scene_shapes.scene_shapes_oracle import backproject, distance_to_mesh, iou, render_depth_alone
 
 from pipelines.scene_shapes.cli import main
-from usl.records.schema import file_schema_version
+from tests.pipelines.scene_shapes.scene_shapes_oracle import backproject, distance_to_mesh, iou, render_depth_alone
 from usl.records import RecordsDataset, decode_depth, decode_mask, frame_K, frame_pose, load_manifest, object_mesh
+from usl.records.schema import file_schema_version
 from usl.records.validate import validate_dataset
 
 SPLITS = ("train", "val", "test")

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Optional
 
 import torch
 from torch import nn
@@ -31,7 +30,7 @@ class ResNetConfig:
     freeze_at: int = 2  # 0: train all; 1: freeze stem; k: also the first k-1 stages (keeps pretrained ones, faster)
     # Bottleneck stride on the first 1x1 conv (original MSRA ResNet, detectron2 weights) instead of
     # the 3x3 (v1.5, torchvision). None: as the model's init weights need (ModelConfig resolves it).
-    stride_in_1x1: Optional[bool] = None
+    stride_in_1x1: bool | None = None
 
 
 @dataclass
@@ -46,7 +45,7 @@ class BackboneConfig:
     fpn: FPNConfig = field(default_factory=FPNConfig)
 
     @classmethod
-    def tiny(cls) -> "BackboneConfig":
+    def tiny(cls) -> BackboneConfig:
         """ResNet-18 at a quarter width with a 32-channel FPN: a few hundred K params, for CPU tests."""
         return cls(resnet=ResNetConfig(depth=18, base_channels=16, norm="BN", freeze_at=0), fpn=FPNConfig(32))
 

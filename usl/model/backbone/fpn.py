@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from typing import Mapping, Sequence
+from collections.abc import Mapping, Sequence
 
 import torch
 import torch.nn.functional as F
@@ -52,4 +52,4 @@ class FPN(nn.Module):
             top_down = lateral + F.interpolate(top_down, size=lateral.shape[-2:], mode="nearest")
             results.insert(0, self.output_convs[index](top_down))
         results.append(F.max_pool2d(results[-1], kernel_size=1, stride=2))
-        return dict(zip(names, results))
+        return dict(zip(names, results, strict=True))

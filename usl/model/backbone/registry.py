@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from typing import Callable, Optional, TypeVar
+from collections.abc import Callable
+from typing import TypeVar
 
 T = TypeVar("T", bound=Callable)
 
@@ -14,7 +15,7 @@ class Registry:
         self.kind = kind
         self._builders: dict[str, Callable] = {}
 
-    def register(self, name: Optional[str] = None) -> Callable[[T], T]:
+    def register(self, name: str | None = None) -> Callable[[T], T]:
         def add(builder: T) -> T:
             key = name or builder.__name__
             if key in self._builders:

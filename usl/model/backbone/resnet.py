@@ -7,8 +7,6 @@ the real networks; e.g. 16 for a tiny CPU test network); names do not change.
 
 from __future__ import annotations
 
-from typing import Optional, Type, Union
-
 import torch
 from torch import nn
 
@@ -37,7 +35,7 @@ class BasicBlock(nn.Module):
         inplanes: int,
         planes: int,
         stride: int,
-        downsample: Optional[nn.Module],
+        downsample: nn.Module | None,
         norm: str,
         stride_in_1x1: bool = False,
     ):
@@ -67,7 +65,7 @@ class Bottleneck(nn.Module):
         inplanes: int,
         planes: int,
         stride: int,
-        downsample: Optional[nn.Module],
+        downsample: nn.Module | None,
         norm: str,
         stride_in_1x1: bool = False,
     ):
@@ -90,7 +88,7 @@ class Bottleneck(nn.Module):
         return self.relu(out + identity)
 
 
-Block = Type[Union[BasicBlock, Bottleneck]]
+Block = type[BasicBlock | Bottleneck]
 ARCHITECTURES: dict[int, tuple[Block, tuple[int, int, int, int]]] = {
     18: (BasicBlock, (2, 2, 2, 2)),
     34: (BasicBlock, (3, 4, 6, 3)),
@@ -135,7 +133,7 @@ class ResNet(nn.Module):
         self.relu = nn.ReLU(inplace=True)
         self.maxpool = nn.MaxPool2d(kernel_size=3, stride=2, padding=1)
         self.stage_channels = {}
-        for index, (stage, blocks) in enumerate(zip(STAGES, layers)):
+        for index, (stage, blocks) in enumerate(zip(STAGES, layers, strict=True)):
             planes = base_channels * 2**index
             setattr(self, stage, self._make_layer(block, planes, blocks, stride=1 if index == 0 else 2, norm=norm))
             self.stage_channels[f"c{index + 2}"] = planes * block.expansion

@@ -3,8 +3,7 @@
 from __future__ import annotations
 
 import itertools
-
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 import torch
@@ -29,7 +28,7 @@ class FastRCNNFCHead(nn.Module):
     def __init__(self, in_channels: int, resolution: int, num_fc: int, fc_dim: int):
         super().__init__()
         dims = [in_channels * resolution * resolution] + [fc_dim] * num_fc
-        self.fcs = nn.ModuleList(nn.Linear(a, b) for a, b in zip(dims[:-1], dims[1:]))
+        self.fcs = nn.ModuleList(nn.Linear(a, b) for a, b in zip(dims[:-1], dims[1:], strict=True))
         for fc in self.fcs:
             nn.init.kaiming_uniform_(fc.weight, a=1)
             nn.init.zeros_(fc.bias)
@@ -82,7 +81,7 @@ class FastRCNNOutputLayers(nn.Module):
             foreground = torch.nonzero(gt_classes < self.num_classes).squeeze(1)
         else:
             starts = itertools.accumulate((len(p) for p in proposals[:-1]), initial=0)
-            rows = [row for start, n in zip(starts, num_foreground) for row in range(start, start + n)]
+            rows = [row for start, n in zip(starts, num_foreground, strict=True) for row in range(start, start + n)]
             foreground = to_device(rows, gt_classes.device, torch.long)  # one upload, queued without a wait
         predicted = deltas.view(len(deltas), self.num_classes, 4)[foreground, gt_classes[foreground]]
         target = self.box2box.get_deltas(proposal_boxes[foreground], gt_boxes[foreground])
@@ -121,5 +120,7 @@ class FastRCNNOutputLayers(nn.Module):
         kept = batched_nms(boxes, scores, image * num_classes + classes, nms_thresh)
         return [
             Instances(p.image_size, pred_boxes=boxes[keep], scores=scores[keep], pred_classes=classes[keep])
-            for p, keep in zip(proposals, (k[:max_detections] for k in kept_by_image(kept, image, len(proposals))))
+            for p, keep in zip(
+                proposals, (k[:max_detections] for k in kept_by_image(kept, image, len(proposals))), strict=True
+            )
         ]

@@ -58,7 +58,7 @@ class DetectorConfig:
     roi_heads: ROIHeadsConfig = field(default_factory=ROIHeadsConfig)
 
     @classmethod
-    def r50(cls) -> "DetectorConfig":
+    def r50(cls) -> DetectorConfig:
         """A plain ResNet-50 (no FPN) as Mesh R-CNN's ShapeNet model trains it, under a C4 detector.
 
         The backbone exposes res2..res5 for the shape head and, like that model's torchvision
@@ -82,7 +82,7 @@ class DetectorConfig:
         )
 
     @classmethod
-    def tiny(cls) -> "DetectorConfig":
+    def tiny(cls) -> DetectorConfig:
         """A few-hundred-K-parameter Mask R-CNN for ~128x128 images, trainable on a CPU in seconds."""
         return cls(
             backbone=BackboneConfig.tiny(),

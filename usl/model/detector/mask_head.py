@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import torch
 import torch.nn.functional as F
@@ -22,7 +22,7 @@ class MaskRCNNConvUpsampleHead(nn.Module):
     def __init__(self, in_channels: int, num_classes: int, num_conv: int, conv_dim: int):
         super().__init__()
         dims = [in_channels] + [conv_dim] * num_conv
-        self.convs = nn.ModuleList(nn.Conv2d(a, b, 3, padding=1) for a, b in zip(dims[:-1], dims[1:]))
+        self.convs = nn.ModuleList(nn.Conv2d(a, b, 3, padding=1) for a, b in zip(dims[:-1], dims[1:], strict=True))
         self.deconv = nn.ConvTranspose2d(dims[-1], conv_dim, kernel_size=2, stride=2)
         self.predictor = nn.Conv2d(conv_dim, num_classes, 1)
         for layer in [*self.convs, self.deconv]:
@@ -66,11 +66,11 @@ def batch_mask_targets(
             offsets.append(offsets[-1] + len(gt_masks[image]))
         stacked = mask_targets(
             torch.cat([gt_masks[image] for image in images]),
-            torch.cat([gt_index[image] + offset for image, offset in zip(images, offsets)]),
+            torch.cat([gt_index[image] + offset for image, offset in zip(images, offsets, strict=True)]),
             torch.cat([boxes[image] for image in images]),
             resolution,
         )
-        crops.update(zip(images, stacked.split([len(boxes[image]) for image in images])))
+        crops.update(zip(images, stacked.split([len(boxes[image]) for image in images]), strict=True))
     if not crops:
         return torch.zeros((0, resolution, resolution), dtype=torch.bool, device=gt_masks[0].device)
     return torch.cat([crops[image] for image in sorted(crops)])
@@ -104,7 +104,7 @@ def paste_masks_in_image(
     xs = torch.arange(width, device=masks.device, dtype=torch.float32) + 0.5
     ys = torch.arange(height, device=masks.device, dtype=torch.float32) + 0.5
     pasted = []
-    for part_masks, part_boxes in zip(masks.split(chunk), boxes.float().split(chunk)):
+    for part_masks, part_boxes in zip(masks.split(chunk), boxes.float().split(chunk), strict=True):
         x0, y0, x1, y1 = part_boxes.unbind(dim=1)
         grid_x = (xs[None] - x0[:, None]) / (x1 - x0).clamp(min=1e-6)[:, None] * 2 - 1
         grid_y = (ys[None] - y0[:, None]) / (y1 - y0).clamp(min=1e-6)[:, None] * 2 - 1

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Optional, Sequence, Union
+from collections.abc import Sequence
 
 import torch
 from torch import nn
@@ -31,7 +31,7 @@ class MaskRCNN(nn.Module):
     are the state-dict keys the pretrained layouts map onto.
     """
 
-    def __init__(self, num_classes: int, cfg: Optional[DetectorConfig] = None):
+    def __init__(self, num_classes: int, cfg: DetectorConfig | None = None):
         super().__init__()
         if num_classes < 1:
             raise ValueError(f"num_classes must be positive, got {num_classes}")
@@ -54,16 +54,16 @@ class MaskRCNN(nn.Module):
             self.backbone.to(memory_format=torch.channels_last)
             self.proposal_generator.to(memory_format=torch.channels_last)
 
-    def preprocess(self, images: Tensor, image_sizes: Optional[Sequence[tuple[int, int]]] = None) -> ImageList:
+    def preprocess(self, images: Tensor, image_sizes: Sequence[tuple[int, int]] | None = None) -> ImageList:
         """Pad normalised images (N, 3, H, W) so every feature map aligns."""
         return ImageList.from_tensor(images, image_sizes, self.backbone.size_divisibility)
 
     def forward(
         self,
         images: Tensor,
-        image_sizes: Optional[Sequence[tuple[int, int]]] = None,
-        targets: Optional[Sequence[dict[str, Tensor]]] = None,
-    ) -> Union[dict[str, Tensor], list[dict[str, Tensor]]]:
+        image_sizes: Sequence[tuple[int, int]] | None = None,
+        targets: Sequence[dict[str, Tensor]] | None = None,
+    ) -> dict[str, Tensor] | list[dict[str, Tensor]]:
         """Training: a dict of named losses. Eval: per image ``{boxes, scores, labels, masks}``.
 
         Args:
@@ -108,7 +108,7 @@ class MaskRCNN(nn.Module):
         return self.roi_heads.forward_box(features, proposals)
 
     @torch.no_grad()
-    def detect(self, images: Tensor, image_sizes: Optional[Sequence[tuple[int, int]]] = None) -> list[Instances]:
+    def detect(self, images: Tensor, image_sizes: Sequence[tuple[int, int]] | None = None) -> list[Instances]:
         """Eval detections per image with box-relative mask probabilities ``mask_probs`` (R, M, M), not pasted.
 
         For callers that detect in resized images and paste the masks at another size.
@@ -119,7 +119,7 @@ class MaskRCNN(nn.Module):
         features = self.features(image_list)
         detections = self.detect_boxes(image_list, features)
         probabilities = self.roi_heads.mask_probabilities(features, detections)
-        for instances, probs in zip(detections, probabilities.split([len(d) for d in detections])):
+        for instances, probs in zip(detections, probabilities.split([len(d) for d in detections]), strict=True):
             instances.mask_probs = probs
         return detections
 
@@ -131,7 +131,7 @@ class MaskRCNN(nn.Module):
             raise InvalidTargetError(f"{len(targets)} targets for {len(image_sizes)} images")
         device = next(self.parameters()).device
         converted = []
-        for index, (target, size) in enumerate(zip(targets, image_sizes)):
+        for index, (target, size) in enumerate(zip(targets, image_sizes, strict=True)):
             boxes, labels = target.get("boxes"), target.get("labels")
             if boxes is None or labels is None:
                 raise InvalidTargetError(f"target {index} needs 'boxes' and 'labels', has {sorted(target)}")

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import torch
 
@@ -43,7 +43,9 @@ class Matcher:
             return zeros, zeros.clone()
         matched_quality, matches = quality.max(dim=-2)
         labels = torch.full_like(matches, self.labels[0])
-        for threshold, label in zip(self.thresholds, self.labels[1:]):  # where, not t[mask] = v: no device read
+        for threshold, label in zip(
+            self.thresholds, self.labels[1:], strict=True
+        ):  # where, not t[mask] = v: no device read
             labels = torch.where(matched_quality >= threshold, label, labels)
         if self.allow_low_quality_matches:
             best_per_gt = quality.max(dim=-1, keepdim=True).values

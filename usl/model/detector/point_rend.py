@@ -17,8 +17,8 @@ Every step runs on all instances of all images at once; only feature sampling lo
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Mapping, Optional
 
 import torch
 import torch.nn.functional as F
@@ -115,7 +115,7 @@ class CoarseMaskHead(nn.Module):
         self.resolution = cfg.coarse_resolution
         self.conv = nn.Conv2d(channels, cfg.conv_dim, kernel_size=2, stride=2)
         dims = [cfg.conv_dim * (cfg.pooler_resolution // 2) ** 2] + [cfg.fc_dim] * cfg.num_fc
-        self.fcs = nn.ModuleList(nn.Linear(a, b) for a, b in zip(dims[:-1], dims[1:]))
+        self.fcs = nn.ModuleList(nn.Linear(a, b) for a, b in zip(dims[:-1], dims[1:], strict=True))
         self.predictor = nn.Linear(dims[-1], num_classes * self.resolution**2)
         nn.init.kaiming_normal_(self.conv.weight, mode="fan_out", nonlinearity="relu")
         nn.init.zeros_(self.conv.bias)
@@ -138,7 +138,9 @@ class PointHead(nn.Module):
     def __init__(self, channels: int, num_classes: int, cfg: PointRendSettings):
         super().__init__()
         dims = [channels] + [cfg.point_fc_dim] * cfg.point_num_fc
-        self.fcs = nn.ModuleList(nn.Conv1d(a + num_classes, b, kernel_size=1) for a, b in zip(dims[:-1], dims[1:]))
+        self.fcs = nn.ModuleList(
+            nn.Conv1d(a + num_classes, b, kernel_size=1) for a, b in zip(dims[:-1], dims[1:], strict=True)
+        )
         self.predictor = nn.Conv1d(dims[-1] + num_classes, num_classes, kernel_size=1)
         for fc in self.fcs:
             nn.init.kaiming_normal_(fc.weight, mode="fan_out", nonlinearity="relu")
@@ -146,7 +148,7 @@ class PointHead(nn.Module):
         nn.init.normal_(self.predictor.weight, std=0.001)
         nn.init.zeros_(self.predictor.bias)
 
-    def forward(self, fine: Tensor, coarse: Tensor, classes: Optional[Tensor] = None) -> Tensor:
+    def forward(self, fine: Tensor, coarse: Tensor, classes: Tensor | None = None) -> Tensor:
         """Logits (R, K, P) for every class, or (R, P) for each row's class in ``classes``.
 
         The 1-wide convs run as matrix products over (R * P, C) rows (a quarter faster on CPUs).
@@ -190,7 +192,7 @@ class PointRendMaskHead(nn.Module):
         return self.coarse_head(pooled.view(len(pooled), feature.shape[1], side, side))
 
     def point_logits(
-        self, feature: Tensor, boxes: list[Tensor], coarse: Tensor, points: Tensor, classes: Optional[Tensor] = None
+        self, feature: Tensor, boxes: list[Tensor], coarse: Tensor, points: Tensor, classes: Tensor | None = None
     ) -> Tensor:
         fine = sample_box_points(feature, self.stride, boxes, points)
         return self.point_head(fine, point_sample(coarse, points), classes)
@@ -231,7 +233,7 @@ class PointRendMaskHead(nn.Module):
         points = self._training_points(coarse, classes)
         labels = [
             bilinear_mask_values(t.gt_masks, p.gt_index, points_in_image(p.proposal_boxes, part))
-            for p, t, part in zip(proposals, targets, points.split([len(b) for b in boxes]))
+            for p, t, part in zip(proposals, targets, points.split([len(b) for b in boxes]), strict=True)
             if len(p)
         ]
         logits = self.point_logits(feature, boxes, coarse, points, classes)

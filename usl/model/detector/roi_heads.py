@@ -8,7 +8,7 @@ truth each sampled proposal matched (``gt_index``).
 
 from __future__ import annotations
 
-from typing import Mapping, Optional
+from collections.abc import Mapping
 
 import torch
 from torch import nn
@@ -86,7 +86,7 @@ class StandardROIHeads(nn.Module):
         self,
         features: Mapping[str, Tensor],
         proposals: list[Instances],
-        targets: Optional[list[Instances]] = None,
+        targets: list[Instances] | None = None,
     ) -> tuple[list[Instances], dict[str, Tensor]]:
         if self.training:
             if targets is None:
@@ -94,7 +94,7 @@ class StandardROIHeads(nn.Module):
             proposals, num_foreground = self.label_and_sample_proposals(proposals, targets)
             losses = self.forward_box(features, proposals, num_foreground)
             # each image's foreground rows come first, so a slice selects them: no device read
-            foreground = [p[:n] for p, n in zip(proposals, num_foreground)]
+            foreground = [p[:n] for p, n in zip(proposals, num_foreground, strict=True)]
             losses.update(self.mask_losses(features, foreground, targets))
             return proposals, losses
         return self.forward_mask(features, self.forward_box(features, proposals)), {}
@@ -109,15 +109,21 @@ class StandardROIHeads(nn.Module):
         ints). Background proposals get class ``num_classes`` and ``gt_index`` -1.
         """
         candidates = [
-            torch.cat([p.proposal_boxes, t.gt_boxes.to(p.proposal_boxes.dtype)]) for p, t in zip(proposals, targets)
+            torch.cat([p.proposal_boxes, t.gt_boxes.to(p.proposal_boxes.dtype)])
+            for p, t in zip(proposals, targets, strict=True)
         ]
         # every image matched at once: ground truth and candidates padded (padded gt rows match nothing)
         _, quality = padded_match_quality([t.gt_boxes for t in targets], stack_padded(candidates)[0])
         all_matches, all_labels = self.matcher(quality)
-        matched = [(m[: len(boxes)], lab[: len(boxes)]) for m, lab, boxes in zip(all_matches, all_labels, candidates)]
+        matched = [
+            (m[: len(boxes)], lab[: len(boxes)])
+            for m, lab, boxes in zip(all_matches, all_labels, candidates, strict=True)
+        ]
         counts = label_counts([labels for _, labels in matched])  # one host read for the batch's draws
         sampled, num_foreground = [], []
-        for proposal, target, boxes, (matches, labels), count in zip(proposals, targets, candidates, matched, counts):
+        for proposal, target, boxes, (matches, labels), count in zip(
+            proposals, targets, candidates, matched, counts, strict=True
+        ):
             positive, negative = subsample_labels(labels, self.cfg.batch_size_per_image, POSITIVE_FRACTION, count)
             keep = torch.cat([positive, negative])
             is_foreground = torch.arange(len(keep), device=keep.device) < len(positive)
@@ -157,7 +163,7 @@ class StandardROIHeads(nn.Module):
     def forward_mask(self, features: Mapping[str, Tensor], instances: list[Instances]) -> list[Instances]:
         """Adds ``pred_masks`` (bool, H x W) to the detections (in training :meth:`mask_losses` runs instead)."""
         probabilities = self.mask_probabilities(features, instances)
-        for detections, probs in zip(instances, probabilities.split([len(d) for d in instances])):
+        for detections, probs in zip(instances, probabilities.split([len(d) for d in instances]), strict=True):
             detections.pred_masks = paste_masks_in_image(
                 probs, detections.pred_boxes, detections.image_size, self.cfg.mask_threshold
             )

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Mapping, Optional
+from collections.abc import Mapping
 
 import torch
 import torch.nn.functional as F
@@ -72,7 +72,7 @@ class RPN(nn.Module):
         self.box2box = Box2BoxTransform(BBOX_REG_WEIGHTS)
 
     def forward(
-        self, images: ImageList, features: Mapping[str, Tensor], targets: Optional[list[Instances]] = None
+        self, images: ImageList, features: Mapping[str, Tensor], targets: list[Instances] | None = None
     ) -> tuple[list[Instances], dict[str, Tensor]]:
         """Proposals (fields ``proposal_boxes``, ``objectness_logits``) per image, and losses.
 
@@ -127,7 +127,7 @@ class RPN(nn.Module):
         pre_topk = self.cfg.pre_nms_topk_train if self.training else self.cfg.pre_nms_topk_test
         post_topk = self.cfg.post_nms_topk_train if self.training else self.cfg.post_nms_topk_test
         top_deltas, top_anchors, scores, levels = [], [], [], []
-        for level, (level_anchors, level_logits, level_deltas) in enumerate(zip(anchors, logits, deltas)):
+        for level, (level_anchors, level_logits, level_deltas) in enumerate(zip(anchors, logits, deltas, strict=True)):
             k = min(pre_topk, level_logits.shape[1])
             top_logits, top_index = level_logits.topk(k, dim=1)
             rows = torch.arange(level_logits.shape[0], device=top_index.device)[:, None]
@@ -160,7 +160,7 @@ class RPN(nn.Module):
         groups = image[index] * len(self.in_features) + levels.repeat(num_images)[index]
         kept = index[batched_nms(boxes[index], scores[index], groups, self.cfg.nms_thresh)]
         proposals = []
-        for size, rows in zip(image_sizes, kept_by_image(kept, image, num_images)):
+        for size, rows in zip(image_sizes, kept_by_image(kept, image, num_images), strict=True):
             rows = rows[:post_topk]
             proposals.append(Instances(size, proposal_boxes=boxes[rows], objectness_logits=scores[rows]))
         return proposals

@@ -2,8 +2,9 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
-from typing import Any, Iterator, Optional, Sequence, Union
+from typing import Any
 
 import torch
 import torch.nn.functional as F
@@ -23,8 +24,8 @@ class ImageList:
 
     @classmethod
     def from_tensor(
-        cls, images: Tensor, image_sizes: Optional[Sequence[tuple[int, int]]] = None, size_divisibility: int = 1
-    ) -> "ImageList":
+        cls, images: Tensor, image_sizes: Sequence[tuple[int, int]] | None = None, size_divisibility: int = 1
+    ) -> ImageList:
         """Zero-pad the bottom/right of ``images`` to a multiple of ``size_divisibility``.
 
         ``image_sizes`` gives each image's valid region (default: the whole tensor); zero
@@ -86,7 +87,7 @@ class Instances:
             return len(value)
         return 0
 
-    def __getitem__(self, index: Union[int, slice, Tensor]) -> "Instances":
+    def __getitem__(self, index: int | slice | Tensor) -> Instances:
         if isinstance(index, int):
             index = slice(index, index + 1 if index != -1 else None)
         return Instances(self.image_size, **{name: value[index] for name, value in self._fields.items()})
@@ -94,12 +95,12 @@ class Instances:
     def __iter__(self) -> Iterator:
         raise TypeError("Instances is not iterable; index it or read its fields")
 
-    def to(self, *args: Any, **kwargs: Any) -> "Instances":
+    def to(self, *args: Any, **kwargs: Any) -> Instances:
         moved = {k: v.to(*args, **kwargs) if hasattr(v, "to") else v for k, v in self._fields.items()}
         return Instances(self.image_size, **moved)
 
     @staticmethod
-    def cat(parts: Sequence["Instances"]) -> "Instances":
+    def cat(parts: Sequence[Instances]) -> Instances:
         """Concatenate instances of the same image."""
         if not parts:
             raise ValueError("Instances.cat needs at least one part")

@@ -8,8 +8,8 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
-from usl.model.config import LayoutHeadConfig, LayoutRange
 from usl.geometry.cameras import pixel_rays
+from usl.model.config import LayoutHeadConfig, LayoutRange
 
 Tensor = torch.Tensor
 

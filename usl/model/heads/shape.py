@@ -18,15 +18,15 @@ any stage's.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Mapping, Optional
 
 import torch
 from torch import nn
 
-from usl.model.config import ShapeHeadConfig
 from usl.geometry import MeshTemplate, ico_sphere
 from usl.model.backbone import ShapeSpec
+from usl.model.config import ShapeHeadConfig
 from usl.utils.transfer import to_device
 
 from .graph_conv import GraphConv
@@ -75,7 +75,7 @@ class RefinementStage(nn.Module):
         nn.init.zeros_(self.offset.bias)
 
     def forward(
-        self, verts: Tensor, vertex_features: Tensor, edges: Tensor, previous: Optional[Tensor] = None
+        self, verts: Tensor, vertex_features: Tensor, edges: Tensor, previous: Tensor | None = None
     ) -> tuple[Tensor, Tensor]:
         """Pre-tanh offsets (N, V, 3) and the last GraphConv's features (N, V, hidden_dim)."""
         positions = verts.to(vertex_features.dtype)
@@ -119,7 +119,7 @@ class ShapeHead(nn.Module):
         self.poolers = (
             nn.ModuleList(
                 single_level_pooler(name, stride, VERTALIGN_RESOLUTION)
-                for name, stride in zip(cfg.features, self.strides)
+                for name, stride in zip(cfg.features, self.strides, strict=True)
             )
             if cfg.sampler == "vertalign"
             else None

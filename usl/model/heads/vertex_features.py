@@ -8,7 +8,7 @@ projection of the current mesh onto the input image needs only the boxes.
 
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import torch
 import torch.nn.functional as F
@@ -50,7 +50,9 @@ def roimap_features(
     uv = project_cube_to_image(verts_cube.float(), boxes.float()).reshape(-1, 2)
     image = image_index[:, None].expand(num_objects, num_verts).reshape(-1)
     # float32 even under autocast: bf16 would misplace samples by cells
-    per_map = [_sample_bilinear(m.float(), image, uv / stride - 0.5) for m, stride in zip(feature_maps, strides)]
+    per_map = [
+        _sample_bilinear(m.float(), image, uv / stride - 0.5) for m, stride in zip(feature_maps, strides, strict=True)
+    ]
     return torch.cat(per_map, dim=1).reshape(num_objects, num_verts, -1)
 
 

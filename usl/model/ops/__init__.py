@@ -9,8 +9,8 @@ from .boxes import (
     box_iou,
     clip_boxes,
     nonempty_boxes,
-    pairwise_intersection,
     padded_match_quality,
+    pairwise_intersection,
     stack_padded,
 )
 from .nms import batched_nms, kept_by_image, nms

@@ -8,7 +8,7 @@ The RPN head flattens its predictions in the same order.
 from __future__ import annotations
 
 import math
-from typing import Sequence
+from collections.abc import Sequence
 
 import torch
 from torch import nn
@@ -86,7 +86,7 @@ class AnchorGenerator(nn.Module):
 
     def _build(self, feature_sizes: Sequence[tuple[int, int]]) -> list[Tensor]:
         anchors = []
-        for level, ((height, width), stride) in enumerate(zip(feature_sizes, self.strides)):
+        for level, ((height, width), stride) in enumerate(zip(feature_sizes, self.strides, strict=True)):
             cell = self._cell(level)
             xs = (torch.arange(width, device=cell.device, dtype=cell.dtype) + self.offset) * stride
             ys = (torch.arange(height, device=cell.device, dtype=cell.dtype) + self.offset) * stride

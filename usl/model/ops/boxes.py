@@ -7,7 +7,7 @@ Boxes live in the continuous pixel frame of docs/design.md §2 (the image spans
 from __future__ import annotations
 
 import math
-from typing import Sequence
+from collections.abc import Sequence
 
 import torch
 

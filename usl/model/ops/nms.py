@@ -26,7 +26,6 @@ equal scores by index.
 from __future__ import annotations
 
 import math
-from typing import Optional
 
 import numpy as np
 import torch
@@ -100,7 +99,7 @@ def _score_order(scores: Tensor) -> Tensor:
     return torch.sort(scores, descending=True, stable=True).indices
 
 
-def _greedy(boxes: Tensor, groups: Optional[Tensor], threshold: float) -> Tensor:
+def _greedy(boxes: Tensor, groups: Tensor | None, threshold: float) -> Tensor:
     """Positions (ascending) kept by greedy NMS over boxes already in score order."""
     count = boxes.shape[0]
     if count < 2:
@@ -134,7 +133,7 @@ def _fixed_point(source: Tensor, target: Tensor, count: int) -> Tensor:
         rounds *= 2  # a long suppression chain: fewer tests for it
 
 
-def _suppression_edges(boxes: Tensor, groups: Optional[Tensor], threshold: float) -> tuple[Tensor, Tensor]:
+def _suppression_edges(boxes: Tensor, groups: Tensor | None, threshold: float) -> tuple[Tensor, Tensor]:
     """Candidate pairs (earlier rank, later rank) and whether each is an edge: the later rank where
     the pair is of two boxes of one group whose IoU exceeds ``threshold``, ``len(boxes)`` where not."""
     count = len(boxes)
@@ -155,7 +154,7 @@ def _suppression_edges(boxes: Tensor, groups: Optional[Tensor], threshold: float
     return source, target.masked_fill(~edge, count)
 
 
-def _candidate_pairs(boxes: Tensor, groups: Optional[Tensor], threshold: float) -> tuple[Tensor, Tensor]:
+def _candidate_pairs(boxes: Tensor, groups: Tensor | None, threshold: float) -> tuple[Tensor, Tensor]:
     """Pairs of boxes (earlier rank, later or equal rank) among which are all that have
     IoU > threshold: a spatial hash join.
 
@@ -240,7 +239,7 @@ def _use_compiled(boxes: Tensor) -> bool:
     return serves(boxes) and boxes.dtype in (torch.float32, torch.float64)
 
 
-def _compiled_batched_nms(boxes: Tensor, scores: Tensor, idxs: Optional[Tensor], iou_threshold: float) -> Tensor:
+def _compiled_batched_nms(boxes: Tensor, scores: Tensor, idxs: Tensor | None, iou_threshold: float) -> Tensor:
     order = _score_order(scores)
     if idxs is None:
         group_end = np.full(len(order), len(order), dtype=np.int64)

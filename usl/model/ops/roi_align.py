@@ -23,9 +23,8 @@ allocate a full-size input gradient per chunk.
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
-from typing import Sequence, Union
 
 import numpy as np
 import torch
@@ -36,7 +35,7 @@ from usl.utils.transfer import constant, to_device
 from .autocast import autocast_off
 
 Tensor = torch.Tensor
-BoxesArg = Union[Tensor, Sequence[Tensor]]
+BoxesArg = Tensor | Sequence[Tensor]
 
 # Upper bound on the gathered feature elements held at once (64 MiB in float32).
 DEFAULT_CHUNK_ELEMENTS = 1 << 24
@@ -67,7 +66,7 @@ def convert_boxes_to_rois(boxes: BoxesArg, like: Tensor) -> Tensor:
 def roi_align(
     input: Tensor,
     boxes: BoxesArg,
-    output_size: Union[int, tuple[int, int]],
+    output_size: int | tuple[int, int],
     spatial_scale: float = 1.0,
     sampling_ratio: int = -1,
     aligned: bool = False,
@@ -97,7 +96,7 @@ def roi_align_levels(
     scales: Sequence[float],
     rois: Tensor,
     level: Tensor,
-    output_size: Union[int, tuple[int, int]],
+    output_size: int | tuple[int, int],
     sampling_ratio: int = -1,
     aligned: bool = False,
     max_chunk_elements: int = DEFAULT_CHUNK_ELEMENTS,
@@ -147,7 +146,7 @@ def roi_align_levels(
     # Rows/columns past the map's edge only occur where the matrices are zero; clamp them in.
     ids = torch.minimum(samples.start[..., None] + torch.arange(window, device=device), map_size[..., None] - 1)
     # where each (level, image) map starts in the channels-last concatenation of all levels
-    pixels = constant(tuple(h * w for h, w in zip(heights, widths)), torch.int64, device)
+    pixels = constant(tuple(h * w for h, w in zip(heights, widths, strict=True)), torch.int64, device)
     level_start = torch.cumsum(pixels * num_images, 0) - pixels * num_images
     map_start = level_start[level] + batch_index * pixels[level]
     window_rows = map_start[:, None] + ids[0] * map_size[1, :, None]  # (K, window) first pixel of each row
@@ -345,7 +344,7 @@ class _ChunkLayout:
 
     def chunks(self) -> Iterator[tuple[int, int, int, int, Tensor]]:
         """``(first RoI, k, window_h, window_w, pixels)`` of each chunk, first RoI in plan order."""
-        for first, (k, h, w), pixels in zip(_first_rois(self.shapes), self.shapes, self.pixels):
+        for first, (k, h, w), pixels in zip(_first_rois(self.shapes), self.shapes, self.pixels, strict=True):
             yield int(first), k, h, w, pixels
 
 

@@ -17,7 +17,7 @@ import pickle
 import re
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Optional, Union
+from typing import Any
 
 import numpy as np
 import torch
@@ -68,10 +68,10 @@ class WeightsFile:
     path: Path
     format: str  # "torchvision" | "detectron2"
     tensors: dict[str, Tensor]
-    author: Optional[str] = None  # detectron2 model zoo files say who wrote them
+    author: str | None = None  # detectron2 model zoo files say who wrote them
 
 
-def resolve_format(path: Union[str, Path], requested: str = "auto") -> str:
+def resolve_format(path: str | Path, requested: str = "auto") -> str:
     """``auto`` picks by suffix: ``.pkl`` is detectron2's format, anything else a torch file."""
     if requested not in FORMATS:
         raise WeightsError(f"init format {requested!r} is not one of {list(FORMATS)}")
@@ -80,7 +80,7 @@ def resolve_format(path: Union[str, Path], requested: str = "auto") -> str:
     return "detectron2" if Path(path).suffix == ".pkl" else "torchvision"
 
 
-def read_weights(path: Union[str, Path], requested: str = "auto") -> WeightsFile:
+def read_weights(path: str | Path, requested: str = "auto") -> WeightsFile:
     path = Path(path)
     if not path.is_file():
         raise WeightsError(f"weights file {path} does not exist (weights are never downloaded; give a local path)")
@@ -116,7 +116,7 @@ class _ArrayUnpickler(pickle.Unpickler):
         return super().find_class(module, name)
 
 
-def read_pickled_arrays(path: Path) -> tuple[dict[str, Tensor], Optional[str]]:
+def read_pickled_arrays(path: Path) -> tuple[dict[str, Tensor], str | None]:
     """Arrays of a detectron2 model zoo file (``model``) or a Caffe2 blob dict (``blobs`` or flat)."""
     try:
         with open(path, "rb") as stream:

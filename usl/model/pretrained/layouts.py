@@ -24,13 +24,13 @@ A target ``None`` marks a tensor we know and deliberately do not use.
 from __future__ import annotations
 
 import re
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable, Optional, Union
 
 import torch
 
 Tensor = torch.Tensor
-Target = Union[str, Callable[[re.Match], str], None]
+Target = str | Callable[[re.Match], str] | None
 
 # Layers whose shape depends on the number of categories: re-initialised when they do not fit.
 # PointRend's point head reads the coarse logits of every class in each layer, so its layers all count.
@@ -54,7 +54,7 @@ class Rule:
     pattern: re.Pattern
     target: Target
 
-    def apply(self, match: re.Match) -> Optional[str]:
+    def apply(self, match: re.Match) -> str | None:
         if self.target is None or isinstance(self.target, str):
             return None if self.target is None else match.expand(self.target)
         return self.target(match)
@@ -72,9 +72,9 @@ class Layout:
     stride_in_1x1: bool  # the ResNet it was trained as (see usl.model.backbone.resnet.Bottleneck)
     caffe2_pixels: bool = False  # trained on BGR 0-255 mean-subtracted inputs (std 1)
     affine_norms: bool = False  # norms hold scale and shift only
-    convert_class_layer: Optional[Callable[[str, Tensor], Tensor]] = None
+    convert_class_layer: Callable[[str, Tensor], Tensor] | None = None
 
-    def target(self, key: str) -> tuple[bool, Optional[str]]:
+    def target(self, key: str) -> tuple[bool, str | None]:
         """``(known, model key or None)`` for a file key."""
         for rule in self.rules:
             match = rule.pattern.match(key)

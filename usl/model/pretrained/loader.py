@@ -19,7 +19,7 @@ from __future__ import annotations
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Optional, TextIO, Union
+from typing import TextIO
 
 import torch
 from torch import nn
@@ -69,7 +69,7 @@ class InitReport:
         return lines
 
 
-def init_detector(detector: nn.Module, path: Union[str, Path, WeightsFile], fmt: str = "auto") -> InitReport:
+def init_detector(detector: nn.Module, path: str | Path | WeightsFile, fmt: str = "auto") -> InitReport:
     """Copy a pretrained checkpoint into ``detector`` (in place) and say what went where.
 
     ``path`` may be a file already read with :func:`read_weights` (then ``fmt`` is its own).
@@ -105,13 +105,13 @@ def init_detector(detector: nn.Module, path: Union[str, Path, WeightsFile], fmt:
     return report
 
 
-def trained_stride_in_1x1(path: Union[str, Path], fmt: str = "auto") -> bool:
+def trained_stride_in_1x1(path: str | Path, fmt: str = "auto") -> bool:
     """The bottleneck variant weights of this format were trained with (decided without reading the file)."""
     (stride,) = {layout.stride_in_1x1 for layout in LAYOUTS[resolve_format(path, fmt)]}
     return stride
 
 
-def print_report(report: InitReport, stream: Optional[TextIO] = None) -> None:
+def print_report(report: InitReport, stream: TextIO | None = None) -> None:
     """Print (to stderr by default) on the main process only: every rank loads the same file."""
     if torch.distributed.is_available() and torch.distributed.is_initialized() and torch.distributed.get_rank():
         return
