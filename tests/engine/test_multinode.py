@@ -70,6 +70,22 @@ def node_command(endpoint: str, rdzv_id: str, out: Path, records: Path) -> list[
     return [sys.executable, "-m", "torch.distributed.run", *[w for f in flags.items() for w in f], *MODULE, *training]
 
 
+def without_rendezvous_teardown(printed: str) -> str:
+    """The output less torchrun's one known teardown race: the node whose agent hosts the c10d store
+    may exit while the other agent still closes the rendezvous, which then logs a failed TCPStore read
+    (a C++ stack) and "failed to shutdown the rendezvous". Both nodes have finished by then and exit 0;
+    a real multi-machine run prints the same. Everything else still counts."""
+    kept, in_stack = [], False
+    for line in printed.splitlines():
+        if "TCPStore.cpp" in line and "recvVector failed" in line:
+            in_stack = True
+        elif in_stack:
+            in_stack = "<omitting python frames>" not in line
+        elif "failed to shutdown the rendezvous" not in line:
+            kept.append(line)
+    return "\n".join(kept)
+
+
 def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -119,8 +135,9 @@ def test_two_nodes_train_one_model_into_one_run_folder(tmp_path, start_node):
     printed = "\n".join(f"--- {log.stem}:\n{log.read_text()}" for _, log in nodes)
     codes = [node.poll() for node, _ in nodes]  # None: still running after the deadline (killed by start_node)
     assert codes == [0, 0], f"exit codes {codes} after at most {NODE_TIMEOUT_S} s:\n{printed[-4000:]}"
+    clean = without_rendezvous_teardown(printed)
     for word in ("warn", "Traceback", "error"):  # torchrun's banners, DDP's and torch's warnings alike
-        assert word.lower() not in printed.lower(), printed[-3000:]
+        assert word.lower() not in clean.lower(), clean[-3000:]
 
     # one training: one config and log, every logged interval once, checkpoints written once
     assert printed.count("usl-train: starting:") == 1 and (out / "config.yaml").is_file()
@@ -133,3 +150,18 @@ def test_two_nodes_train_one_model_into_one_run_folder(tmp_path, start_node):
     assert checkpoint["world_size"] == 2 and checkpoint["iteration"] == 4
     names = [name for name, _ in load_model(out)[0].named_parameters()]
     assert checkpoint["replica_sha256"] == [parameter_sha256(checkpoint["model"], names)] * 2
+
+
+def test_only_the_rendezvous_teardown_race_is_forgiven():
+    race = (
+        "[W1206 05:39:41.415373435 TCPStore.cpp:115] [c10d] recvVector failed on SocketImpl(fd=3): Failed to recv,"
+        " got 0 bytes. Connection was likely closed.\n"
+        "Exception raised from recvBytes at Utils.hpp:787 (most recent call first):\n"
+        "frame #0: c10::Error::Error(c10::SourceLocation) + 0x9d\n"
+        "<omitting python frames>\n"
+        "W1206 05:39:41.911000 26395 dynamic_rendezvous.py:1298] The node 'localhost_26395_0' has failed to shutdown"
+        " the rendezvous 'usl-test' due to an error of type RendezvousConnectionError.\n"
+    )
+    assert without_rendezvous_teardown(f"usl-train: done\n{race}--- node1:") == "usl-train: done\n--- node1:"
+    other = "UserWarning: Grad strides do not match bucket view strides\nTraceback (most recent call last):"
+    assert without_rendezvous_teardown(race + other) == other
