@@ -70,6 +70,10 @@ def node_command(endpoint: str, rdzv_id: str, out: Path, records: Path) -> list[
     return [sys.executable, "-m", "torch.distributed.run", *[w for f in flags.items() for w in f], *MODULE, *training]
 
 
+# the agents' own logging of a slow rendezvous peer (a busy machine): both nodes still finish and exit 0
+RENDEZVOUS_RACES = ("failed to shutdown the rendezvous", "failed to send a keep-alive heartbeat to the rendezvous")
+
+
 def without_rendezvous_teardown(printed: str) -> str:
     """The output less torchrun's one known teardown race: the node whose agent hosts the c10d store
     may exit while the other agent still closes the rendezvous, which then logs a failed TCPStore read
@@ -81,7 +85,7 @@ def without_rendezvous_teardown(printed: str) -> str:
             in_stack = True
         elif in_stack:
             in_stack = "<omitting python frames>" not in line
-        elif "failed to shutdown the rendezvous" not in line:
+        elif not any(race in line for race in RENDEZVOUS_RACES):
             kept.append(line)
     return "\n".join(kept)
 
@@ -163,5 +167,9 @@ def test_only_the_rendezvous_teardown_race_is_forgiven():
         " the rendezvous 'usl-test' due to an error of type RendezvousConnectionError.\n"
     )
     assert without_rendezvous_teardown(f"usl-train: done\n{race}--- node1:") == "usl-train: done\n--- node1:"
+    heartbeat = (
+        "W1206 dynamic_rendezvous.py:1362] The node 'n' has failed to send a keep-alive heartbeat to the rendezvous 'r'"
+    )
+    assert without_rendezvous_teardown(heartbeat) == ""
     other = "UserWarning: Grad strides do not match bucket view strides\nTraceback (most recent call last):"
     assert without_rendezvous_teardown(race + other) == other
