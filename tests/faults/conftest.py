@@ -15,6 +15,7 @@ import builtins
 import errno
 import io
 import os
+import pathlib
 import re
 import subprocess
 import threading
@@ -144,6 +145,9 @@ def write_faults(monkeypatch: pytest.MonkeyPatch) -> Callable[..., WriteFaults]:
     monkeypatch.setattr(os, "link", failing_link)
     monkeypatch.setattr(os, "fsync", failing_fsync)
     monkeypatch.setattr(os, "mkdir", failing_mkdir)
+    if hasattr(pathlib, "_normal_accessor"):  # Python 3.10: Path.mkdir/replace call os's functions bound at import
+        monkeypatch.setattr(pathlib._normal_accessor, "mkdir", failing_mkdir)
+        monkeypatch.setattr(pathlib._normal_accessor, "replace", failing_replace)
     monkeypatch.setattr(pq.ParquetWriter, "write_table", failing_write_table)
 
     def arm(fail_at: int | None = None, errno_: int = errno.ENOSPC) -> WriteFaults:
