@@ -4,7 +4,7 @@
 # "what it takes" is measured: train once with train.keep_checkpoints=0, then read the curve.
 #
 #   bash scripts/experiments/learning_curve.sh RUN HELDOUT [ITER ...]
-#   bash scripts/experiments/learning_curve.sh runs/experiments/long/train runs/experiments/data/heldout_seed1 1000 2000 4000
+#   bash scripts/experiments/learning_curve.sh runs/experiments/long/train runs/experiments/data/heldout/seed1 1000 2000 4000
 #
 # Environment: USL_CURVE_VIEWS (input views per held-out scene, default every:8, the main job's).
 # Each checkpoint's report goes to RUN/curve/ITER/; a checkpoint already scored is not redone.

@@ -1,26 +1,31 @@
 #!/usr/bin/env bash
 # The paper's Table 1 (Scene-Shapes) at CPU scale: train every row with several seeds on the main
-# job's Scene-Shapes build, score each run on the held-out build with another --seed (other shape
-# models, other scenes; its train split, every 8th view an input view), score the fixed- and
-# random-depth spheres once, and write a Markdown table of mean ± std over seeds.
+# job's Scene-Shapes build, score each run as the main job scores its model (every input view of the
+# train split of the held-out builds with seeds 1, 2, 3: other shape models, other scenes; a run's
+# figure is its mean over the three builds), score the fixed- and random-depth spheres once the same
+# way, and write a Markdown table of mean ± std over seeds with the paper's orderings judged on it.
 #
 #   bash scripts/experiments/table1.sh                  # every row, seeds 0,1,2, the tiny recipe's own budget
 #   bash scripts/experiments/table1.sh --dry-run        # print the budget (iterations, runs, estimated time) only
-#   bash scripts/experiments/table1.sh --quick          # smoke run: 10-scene builds, 10 iterations, 2 seeds (~3 min)
+#   bash scripts/experiments/table1.sh --quick          # smoke run: 10-scene training build, 3-scene held-out builds, 10 iterations, 2 seeds (~4 min)
 #   bash scripts/experiments/table1.sh --seeds 0,1,2,3,4 --iters 600 --out runs/table1_600
 #
 # Options: --seeds LIST (train.seed values; default 0,1,2, --quick 0,1), --iters N (per run;
 # default the recipe's optim.max_iter, and the recipe's schedule is scaled to another N),
-# --out DIR (default runs/table1, --quick runs/table1_quick), --data DIR (the builds; default
-# runs/experiments/data, the builds of scripts/experiments/recipe_experiment.sh, --quick OUT/data),
+# --out DIR (default runs/table1, --quick runs/table1_quick), --data DIR (the training build and
+# DATA/heldout/seed<k>; default runs/experiments/data, the builds of
+# scripts/experiments/recipe_experiment.sh, --quick OUT/data),
 # --jobs N (runs side by side, one thread each; default: the cores), --config RECIPE (default tiny).
 # Rows and their overrides: scripts/experiments/table1_plan.py. A row whose config key this checkout lacks is
 # reported as "skipped: key not available". The budget is printed before anything runs.
 #
-# Resumable: a run with its final checkpoint and its held-out metrics.json is not redone, a run
-# stopped halfway resumes from its last checkpoint, finished builds are kept; more seeds can be
-# added later with the same options. Writes OUT/table1.md (and table1.json), OUT/runs/<row>/seed<k>/
-# {train,eval,train.log,eval.log}, OUT/baselines/eval and OUT/progress.log.
+# Resumable: a run with its final checkpoint and its eval/summary.json (written once every build is
+# scored) is not redone; a run stopped while scoring keeps the builds it scored (seed<k>/metrics.json)
+# and scores only the others; a run stopped while training resumes from its last checkpoint;
+# finished builds are kept; more seeds can be added later with the same options. Writes
+# OUT/table1.md (and table1.json), OUT/runs/<row>/seed<k>/{train,train.log,eval}, each eval folder
+# holding usl-eval's report of every build (seed<k>/, its log and CPU time seed<k>.log, seed<k>.time)
+# and their summary.json; OUT/baselines/eval the same; OUT/progress.log.
 set -euo pipefail
 cd "$(dirname "$0")/../.."
 export PYOPENGL_PLATFORM=${PYOPENGL_PLATFORM:-egl}
@@ -48,30 +53,34 @@ while (($#)); do
   shift
 done
 
-EXTRA=() EVAL_OPTS=(--pictures 2)
+EXTRA=() EVAL_OPTS=() PICTURES=2 HELDOUT_OPTS=()
 if ((QUICK)); then
   SEEDS=${SEEDS:-0,1} ITERS=${ITERS:-10} OUT=${OUT:-runs/table1_quick} DATA=${DATA:-$OUT/data}
-  SCENES=10 EXTRA=(val.period=0) EVAL_OPTS=(--pictures 1 --samples-3d 2000)
+  # small held-out builds so scoring stays a smoke test too: 3 scenes (one in the train split, 8 input
+  # views) of 9 shape models, the fewest that give each split a model of every category (this
+  # --num-models comes after, so replaces, the scene count build_scene_shapes passes)
+  SCENES=10 HELDOUT_SCENES=3 HELDOUT_OPTS=(--num-models 9) EXTRA=(val.period=0) EVAL_OPTS=(--samples-3d 2000) PICTURES=1
 else
   SEEDS=${SEEDS:-0,1,2} OUT=${OUT:-runs/table1} DATA=${DATA:-runs/experiments/data} SCENES=60
 fi
 [[ $SEEDS =~ ^[0-9]+(,[0-9]+)*$ ]] || { echo "table1.sh: error: --seeds $SEEDS is not a comma-separated list of integers" >&2; exit 2; }
 [[ $JOBS =~ ^[1-9][0-9]*$ ]] || { echo "table1.sh: error: --jobs $JOBS is not a positive integer" >&2; exit 2; }
 IFS=, read -ra SEED_LIST <<< "$SEEDS"
-TRAIN=$DATA/train_seed0_$SCENES HELDOUT=$DATA/heldout_seed1  # as experiment_builds names them
-EVAL_VIEWS=every:8  # of the 8 views per scene: one input view per scene of the split (80% of the scenes)
+TRAIN=$DATA/train_seed0_$SCENES  # as recipe_experiment.sh names it; heldout_builds makes DATA/heldout/seed<k>
+HELDOUT="$DATA/heldout/seed{$(IFS=,; echo "${HELDOUT_SEEDS[*]}")}"  # for the budget and the log
 start=$(date +%s)
 
 echo "== Table 1 at CPU scale -> $OUT"
 mkdir -p "$OUT"
 python3 scripts/experiments/table1_plan.py --config "$CONFIG" ${ITERS:+--iters "$ITERS"} --seeds "$SEEDS" --jobs "$JOBS" --out "$OUT" \
-  --data "train=$TRAIN ($SCENES scenes) heldout=$HELDOUT ($SCENES scenes, split train, input views $EVAL_VIEWS)" \
-  --eval-views $((SCENES * 8 / 10)) \
+  --data "train=$TRAIN ($SCENES scenes) heldout=$HELDOUT ($HELDOUT_SCENES scenes each${HELDOUT_OPTS[*]:+, ${HELDOUT_OPTS[*]}}, split train, input views all)" \
+  --heldout-builds ${#HELDOUT_SEEDS[@]} --heldout-scenes "$HELDOUT_SCENES" \
   ${EXTRA[@]+"${EXTRA[@]}"} | tee "$OUT/plan.txt"
 ((DRY)) && exit 0
 
 echo "== builds: $TRAIN, $HELDOUT"
-experiment_builds "$DATA" "$SCENES" "$SCENES" --quiet
+build_scene_shapes "$TRAIN" 0 "$SCENES" --quiet
+heldout_builds "$DATA" --quiet ${HELDOUT_OPTS[@]+"${HELDOUT_OPTS[@]}"}
 
 THIS_RUN=$OUT/.this_run  # this invocation's finished runs (their durations) and failures
 rm -rf "$THIS_RUN" && mkdir -p "$THIS_RUN" "$OUT/runs"
@@ -80,7 +89,7 @@ total=$(( $(cut -f3 "$OUT/plan.tsv" | grep -cx train || true) * ${#SEED_LIST[@]}
 
 progress() {  # one line per finished run: runs done, time so far, estimate of what is left
   local done timed left=""
-  done=$(find "$OUT/runs" -path '*/eval/metrics.json' | wc -l)
+  done=$(find "$OUT/runs" -path '*/eval/summary.json' | wc -l)
   timed=$(cat "$THIS_RUN"/*.s 2>/dev/null | awk '{ s += $1; n++ } END { if (n) printf "%d", s / n }' || true)
   if [[ -n $timed ]] && ((done < total)); then left=", ~$(( (total - done) * timed / JOBS / 60 + 1 )) min left"; fi
   echo "[$done/$total runs, $(( ($(date +%s) - start) / 60 )) min$left] $*" | tee -a "$OUT/progress.log"
@@ -93,23 +102,39 @@ fail() {  # RUN_ID MESSAGE LOG
   return 1
 }
 
+score() {  # RUN_ID LABEL EVAL usl-eval options...: every held-out build EVAL lacks, then EVAL/summary.json
+  # as the main job's evaluate_heldout, but one build after another (JOBS runs already share the cores)
+  local id=$1 label=$2 eval=$3 seed shown
+  shift 3
+  mkdir -p "$eval"
+  for seed in "${HELDOUT_SEEDS[@]}"; do
+    [[ -f $eval/seed$seed/metrics.json ]] && continue  # scored before this invocation
+    shown=0
+    [[ $seed == "${HELDOUT_SEEDS[0]}" ]] && shown=$PICTURES  # pictures of the first build only, as the main job
+    rm -rf "$eval/seed$seed.partial"
+    /usr/bin/time -o "$eval/seed$seed.time" -f "%e %U" \
+      python3 -m usl.cli.evaluate "$DATA/heldout/seed$seed" --split train --input-views all --device cpu \
+      --out "$eval/seed$seed.partial" --quiet --pictures "$shown" ${EVAL_OPTS[@]+"${EVAL_OPTS[@]}"} "$@" \
+      > "$eval/seed$seed.log" 2>&1 || fail "$id" "$label: usl-eval on held-out build $seed" "$eval/seed$seed.log" || return 1
+    mv "$eval/seed$seed.partial" "$eval/seed$seed"
+  done
+  python3 scripts/experiments/table1_summary.py --combine "$eval" > "$eval/summary.log" 2>&1 \
+    || fail "$id" "$label: the summary over the builds" "$eval/summary.log" || return 1
+}
+
 baselines() {
-  [[ -f $OUT/baselines/eval/metrics.json ]] && return 0
-  rm -rf "$OUT/baselines/eval.partial" && mkdir -p "$OUT/baselines"
-  python3 -m usl.cli.evaluate "$HELDOUT" --split train --input-views "$EVAL_VIEWS" --rows fixed,random --device cpu \
-    --out "$OUT/baselines/eval.partial" --quiet "${EVAL_OPTS[@]}" > "$OUT/baselines/eval.log" 2>&1 \
-    || fail baselines "baselines: usl-eval" "$OUT/baselines/eval.log" || return 1
-  mv "$OUT/baselines/eval.partial" "$OUT/baselines/eval"
+  [[ -f $OUT/baselines/eval/summary.json ]] && return 0
+  score baselines baselines "$OUT/baselines/eval" --rows fixed,random || return 1
   progress "Fixed and Random depth scored"
 }
 
-run_one() {  # SLUG LABEL SEED OVERRIDES...: train (or resume), then score on the held-out build
+run_one() {  # SLUG LABEL SEED OVERRIDES...: train (or resume), then score on the held-out builds
   local slug=$1 label=$2 seed=$3
   shift 3
   local run=$OUT/runs/$slug/seed$seed began iters what resume=()
   began=$(date +%s)
   for o in "$@"; do [[ $o == optim.max_iter=* ]] && iters=${o#*=}; done
-  if [[ -f $run/eval/metrics.json ]]; then
+  if [[ -f $run/eval/summary.json ]]; then
     progress "$label, seed $seed: done before: $(python3 scripts/experiments/table1_summary.py --run "$run/eval")"
     return 0
   fi
@@ -128,12 +153,7 @@ run_one() {  # SLUG LABEL SEED OVERRIDES...: train (or resume), then score on th
   fi
   local scoring
   scoring=$(date +%s)
-  rm -rf "$run/eval.partial"
-  /usr/bin/time -o "$run/eval_time.txt" -f "%e %U" \
-    python3 -m usl.cli.evaluate "$HELDOUT" --split train --input-views "$EVAL_VIEWS" --checkpoint "$run/train" --rows model \
-    --device cpu --out "$run/eval.partial" --quiet "${EVAL_OPTS[@]}" > "$run/eval.log" 2>&1 \
-    || fail "${slug}_$seed" "$label, seed $seed: usl-eval" "$run/eval.log" || return 1
-  mv "$run/eval.partial" "$run/eval"
+  score "${slug}_$seed" "$label, seed $seed" "$run/eval" --checkpoint "$run/train" --rows model || return 1
   echo $(( $(date +%s) - began )) > "$THIS_RUN/${slug}_$seed.s"
   progress "$label, seed $seed: $what; scored in $(( $(date +%s) - scoring )) s: $(python3 scripts/experiments/table1_summary.py --run "$run/eval")"
 }

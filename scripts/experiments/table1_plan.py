@@ -22,6 +22,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
+from data_specs import load_dataset_spec
+from pipelines.scene_shapes.plan import split_counts
 from usl.config import Config, ConfigError, dump_config, load_config
 
 
@@ -62,10 +64,14 @@ MEASURED_SECONDS_PER_ITER = {
     "usl5_no_dist": 1.17,
     "meshrcnn_3d": 1.32,
 }
-# usl-eval --rows model (10k points per mesh, 2 pictures): start-up, and per input view; from
-# 9.0 s CPU for 8 input views and 32.7 s for 64 (the quick held-out build, every:8 and all).
-# The periodic validation during training (val.period) is not counted.
-EVAL_START_SECONDS, EVAL_SECONDS_PER_VIEW = 5.6, 0.42
+# usl-eval --rows model of one held-out build: start-up, and per input view (10k points per mesh;
+# pictures, drawn of the first build only, add under 1 s); measured on this project's 2-core machine
+# while two training processes shared it (2026-12-06): 15.3 s CPU for a 20-scene build's 128 input
+# views, ~3.5 s for --quick's 8 (2,000 points). The periodic validation during training
+# (val.period) is not counted.
+EVAL_START_SECONDS, EVAL_SECONDS_PER_VIEW = 2.7, 0.095
+# Each run is scored on every input view of the train split of each held-out build (8 views per scene).
+VIEWS_PER_SCENE = 8
 
 
 def budget_overrides(recipe: Config, iters: int) -> list[str]:
@@ -115,6 +121,12 @@ def measured_seconds_per_iter(out: Path, row: Row, iters: int) -> float:
     return statistics.fmean(cpu) / iters if cpu else MEASURED_SECONDS_PER_ITER[row.slug]
 
 
+def heldout_input_views(scenes: int) -> int:
+    """Input views of one held-out build's train split: its scenes as the builder splits them, every view."""
+    splits = load_dataset_spec("scene_shapes")["splits"]
+    return split_counts(scenes, list(splits.values()))[list(splits).index("train")] * VIEWS_PER_SCENE
+
+
 def duration(seconds: float) -> str:
     minutes = round(seconds / 60)
     return f"{minutes // 60} h {minutes % 60:02d} min" if minutes >= 60 else f"{max(minutes, 1)} min"
@@ -144,11 +156,15 @@ def plan(
     out: Path,
     extra: Sequence[str] = (),
     data: str = "",
-    eval_views: int = 48,
+    heldout_builds: int = 3,
+    heldout_scenes: int = 20,
 ) -> str:
     """Write ``out/plan.tsv``; return the budget text to print. ``data``: the builds and the
-    evaluation protocol, recorded with the budget; ``eval_views``: input views each run is scored on."""
-    per_run = EVAL_START_SECONDS + eval_views * EVAL_SECONDS_PER_VIEW  # training start-up is in the rates
+    evaluation protocol, recorded with the budget; each run is scored by one usl-eval per held-out
+    build (``heldout_builds`` of ``heldout_scenes`` scenes: the main job's by default)."""
+    eval_views = heldout_builds * heldout_input_views(heldout_scenes)
+    # one usl-eval start-up per build; training start-up is in the rates
+    per_run = heldout_builds * EVAL_START_SECONDS + eval_views * EVAL_SECONDS_PER_VIEW
     recipe = load_config(config)
     iters = iters or recipe.optim.max_iter
     budget = budget_overrides(recipe, iters) + list(extra)
@@ -176,7 +192,7 @@ def plan(
         f"{iters} iterations ({runs * iters:,} in all), recipe {config}, {jobs} at a time with 1 thread each",
         f"  overrides of every run: {' '.join(budget)}",
         f"  seconds per iteration: {', '.join(rates) or '-'} (measured, see scripts/experiments/table1_plan.py), "
-        f"plus ~{per_run:.0f} s per run for scoring {eval_views} held-out input views",
+        f"plus ~{per_run:.0f} s per run for scoring {eval_views} held-out input views ({heldout_builds} builds, every input view)",
         f"  estimated time: {duration(cost / max(jobs, 1))} on {jobs} idle cores, not counting the builds and runs already done",
     ]
     text += [f"  {s}" for s in skipped]
@@ -191,7 +207,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--jobs", type=int, default=2, help="runs trained side by side")
     p.add_argument("--out", required=True, help="the table's output folder")
     p.add_argument("--data", default="", help="the builds and evaluation protocol, recorded with the budget")
-    p.add_argument("--eval-views", type=int, default=48, help="held-out input views each run is scored on")
+    p.add_argument("--heldout-builds", type=int, default=3, help="held-out builds each run is scored on")
+    p.add_argument("--heldout-scenes", type=int, default=20, help="scenes of each held-out build")
     p.add_argument("extra", nargs="*", metavar="key=value", help="more overrides for every run")
     args = p.parse_args(argv)
     try:
@@ -204,7 +221,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                 Path(args.out),
                 args.extra,
                 args.data,
-                args.eval_views,
+                args.heldout_builds,
+                args.heldout_scenes,
             )
         )
     except (ConfigError, ValueError) as exc:

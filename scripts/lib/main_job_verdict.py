@@ -16,43 +16,16 @@ at least 6 points of Mask IoU in the input view and 12 in the other views.
 from __future__ import annotations
 
 import json
-import re
 import statistics
 import sys
 from pathlib import Path
 
-from usl.evaluation.report import COLUMNS, mean_std, mean_std_cell
+from usl.evaluation.report import COLUMNS, builds_summary, mean_std_cell, read_builds, row_values
 
 TABLE_COLUMNS = COLUMNS["scene_shapes"]  # Chamfer, F1, Mask IoU input, Mask IoU views: titles, scales, decimals
-LOWER_IS_BETTER = {"chamfer"}
 MODEL, SPHERES = "USL", ("Fixed depth", "Random depth")
 # points of Mask IoU (x100) by which USL's means must lead the fixed-depth sphere
 LEAD_TARGETS = {"mask_iou_input": 6.0, "mask_iou_views": 12.0}
-_SEED = re.compile(r"^seed(\d+)$")
-
-
-def read_builds(folder: Path) -> dict[int, dict]:
-    """seed -> usl-eval's metrics.json, for every ``seed<k>`` subfolder that has one."""
-    builds = {}
-    for sub in sorted(folder.iterdir()):
-        match = _SEED.match(sub.name)
-        if match and (sub / "metrics.json").is_file():
-            builds[int(match.group(1))] = json.loads((sub / "metrics.json").read_text())
-    if not builds:
-        raise SystemExit(f"main_job_verdict: {folder}: no seed<k>/metrics.json (usl-eval --out {folder}/seed<k>)")
-    return builds
-
-
-def row_values(builds: dict[int, dict]) -> dict[str, dict[str, list[float]]]:
-    """predictor name -> metric -> its value on each build (in seed order)."""
-    values: dict[str, dict[str, list[float]]] = {}
-    for report in builds.values():
-        for predictor in report["predictors"]:
-            row = values.setdefault(predictor["name"], {c.metric: [] for c in TABLE_COLUMNS})
-            for c in TABLE_COLUMNS:
-                if predictor["metrics"].get(c.metric) is not None:
-                    row[c.metric].append(predictor["metrics"][c.metric])
-    return values
 
 
 def markdown(builds: dict[int, dict], values: dict[str, dict[str, list[float]]]) -> str:
@@ -96,7 +69,7 @@ def verdict(builds: dict[int, dict], values: dict[str, dict[str, list[float]]]) 
             ours = rows[MODEL][c.metric]
             for sphere in SPHERES:
                 theirs = rows[sphere][c.metric]
-                wins = ours < theirs if c.metric in LOWER_IS_BETTER else ours > theirs
+                wins = ours < theirs if c.lower_is_better else ours > theirs
                 ok &= wins
                 if not wins:
                     lines.append(f"FAIL: seed {seed}: USL {c.metric} {ours:.3f} vs {sphere} {theirs:.3f}")
@@ -116,22 +89,14 @@ def verdict(builds: dict[int, dict], values: dict[str, dict[str, list[float]]]) 
 
 def main(folder: str) -> int:
     root = Path(folder)
-    builds = read_builds(root)
-    values = row_values(builds)
+    try:
+        builds = read_builds(root)
+    except ValueError as exc:
+        raise SystemExit(f"main_job_verdict: {exc}") from None
+    values = row_values(builds, TABLE_COLUMNS)
     table = markdown(builds, values)
     ok, lines = verdict(builds, values)
-    summary = {
-        "seeds": list(builds),
-        "num_input_views": {str(s): b["num_input_views"] for s, b in builds.items()},
-        "checkpoint": next(iter(builds.values())).get("checkpoint"),
-        "rows": {
-            name: {
-                metric: dict(zip(("mean", "std"), mean_std(v), strict=True), values=v) for metric, v in row.items() if v
-            }
-            for name, row in values.items()
-        },
-        "claim_holds": ok,
-    }
+    summary = {**builds_summary(builds, values), "claim_holds": ok}
     (root / "table.md").write_text(table)
     (root / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     print(table)

@@ -3,15 +3,13 @@
 #
 #   source scripts/lib/scene_shapes_builds.sh
 #   build_scene_shapes OUT SEED SCENES [builder options]      # SCENES scenes and as many shape models
-#   experiment_builds DATA TRAIN_SCENES HELDOUT_SCENES [builder options, e.g. --quiet]
 #   heldout_builds DATA [builder options]                     # DATA/heldout/seed{1,2,3}, 20 scenes each
 #   evaluate_heldout DATA CHECKPOINT EVAL ROWS FIRST_ROWS PICTURES   # every input view of those, mean ± std
 #
-# Both build the main job's format (8 views per scene at two heights, 128^2), or resume a build (a
-# finished one is verified and kept). experiment_builds makes a training build (seed 0) in
-# $TRAIN = DATA/train_seed0_TRAIN_SCENES and the held-out build with another seed (seed 1: other
-# shape models, other scenes) in $HELDOUT = DATA/heldout_seed1. Every split of the held-out build
-# is unseen; score its train split, the largest.
+# Both builders make the main job's format (8 views per scene at two heights, 128^2), or resume a
+# build (a finished one is verified and kept). Every split of a held-out build is unseen; its train
+# split, the largest, is scored. table1.sh scores each of its runs on the same builds, one after
+# another, and sets HELDOUT_SCENES lower for its smoke run.
 
 source "$(dirname "${BASH_SOURCE[0]}")/cores.sh"
 
@@ -20,15 +18,6 @@ build_scene_shapes() {  # OUT SEED SCENES [builder options]
   shift 3
   python3 -m pipelines.scene_shapes.cli --out "$out" --seed "$seed" --num-scenes "$scenes" --num-models "$scenes" \
     --resolution 128 --views 8 --heights 2 --workers "$(cores)" "$@"
-}
-
-experiment_builds() {  # DATA TRAIN_SCENES HELDOUT_SCENES [builder options]
-  local data=$1 train_scenes=$2 heldout_scenes=$3
-  shift 3
-  TRAIN=$data/train_seed0_$train_scenes
-  HELDOUT=$data/heldout_seed1
-  build_scene_shapes "$TRAIN" 0 "$train_scenes" "$@"
-  build_scene_shapes "$HELDOUT" 1 "$heldout_scenes" "$@"
 }
 
 # The held-out protocol of the main job and of recipe_experiment.sh: three builds with other seeds

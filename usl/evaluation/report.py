@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import statistics
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -30,14 +31,18 @@ class Column:
     metric: str
     scale: float
     decimals: int
+    lower_is_better: bool = False  # errors (Chamfer, depth): tables that order rows compare these the other way
 
 
 _BOX = [Column("Box gIoU input", "box_giou_input", 1, 2), Column("Box gIoU views", "box_giou_views", 1, 2)]
 _MASK = [Column("Mask IoU input", "mask_iou_input", 1, 2), Column("Mask IoU views", "mask_iou_views", 1, 2)]
-_DEPTH = [Column("Depth L1 ↓ input", "depth_l1_input", 1, 2), Column("Depth L1 ↓ views", "depth_l1_views", 1, 2)]
+_DEPTH = [
+    Column("Depth L1 ↓ input", "depth_l1_input", 1, 2, lower_is_better=True),
+    Column("Depth L1 ↓ views", "depth_l1_views", 1, 2, lower_is_better=True),
+]
 COLUMNS: dict[str, list[Column]] = {
     "scene_shapes": [
-        Column("Ch. ↓", "chamfer", 1, 3),
+        Column("Ch. ↓", "chamfer", 1, 3, lower_is_better=True),
         Column("F1@0.1", "f1", 1, 1),
         Column("Mask IoU input", "mask_iou_input", 100, 1),
         Column("Mask IoU views", "mask_iou_views", 100, 1),
@@ -46,6 +51,7 @@ COLUMNS: dict[str, list[Column]] = {
     "scannet": _BOX + _MASK,
 }
 _PREDICTS_COLUMNS = {"scene_shapes": False, "hypersim": True, "scannet": True}
+_BUILD = re.compile(r"^seed(\d+)$")
 
 
 def choose_layout(dataset_name: str, summaries: Sequence[PredictorSummary]) -> str:
@@ -73,6 +79,50 @@ def mean_std_cell(values: Sequence[float], column: Column) -> str:
     for none (tables over seeds and held-out builds print figures as usl-eval does)."""
     mean, std = mean_std(values)
     return _cell(mean, column) if std is None else f"{_cell(mean, column)} ± {std * column.scale:.{column.decimals}f}"
+
+
+def read_builds(folder: Path) -> dict[int, dict[str, Any]]:
+    """seed -> usl-eval's metrics.json, for every ``seed<k>`` subfolder that has one: the reports of
+    one model on held-out builds made with other ``--seed`` values, which tables summarise over."""
+    builds = {}
+    for sub in sorted(folder.iterdir()):
+        match = _BUILD.match(sub.name)
+        if match and (sub / "metrics.json").is_file():
+            builds[int(match.group(1))] = json.loads((sub / "metrics.json").read_text())
+    if not builds:
+        raise ValueError(f"{folder}: no seed<k>/metrics.json (usl-eval --out {folder}/seed<k>)")
+    return builds
+
+
+def row_values(builds: Mapping[int, Mapping[str, Any]], columns: Sequence[Column]) -> dict[str, dict[str, list[float]]]:
+    """predictor name -> metric -> its value on each build (in seed order)."""
+    values: dict[str, dict[str, list[float]]] = {}
+    for report in builds.values():
+        for predictor in report["predictors"]:
+            row = values.setdefault(predictor["name"], {c.metric: [] for c in columns})
+            for c in columns:
+                if predictor["metrics"].get(c.metric) is not None:
+                    row[c.metric].append(predictor["metrics"][c.metric])
+    return values
+
+
+def builds_summary(
+    builds: Mapping[int, Mapping[str, Any]], values: Mapping[str, Mapping[str, list[float]]]
+) -> dict[str, Any]:
+    """The figures over held-out builds as ``summary.json`` records them: each row's mean, sample
+    std and per-build values, with the builds and the checkpoint scored (one format for every
+    table over builds, so their readers share it)."""
+    return {
+        "seeds": list(builds),
+        "num_input_views": {str(s): b["num_input_views"] for s, b in builds.items()},
+        "checkpoint": next(iter(builds.values())).get("checkpoint"),
+        "rows": {
+            name: {
+                metric: dict(zip(("mean", "std"), mean_std(v), strict=True), values=v) for metric, v in row.items() if v
+            }
+            for name, row in values.items()
+        },
+    }
 
 
 def _markdown(header: list[str], rows: list[list[str]], align: list[str]) -> str:
