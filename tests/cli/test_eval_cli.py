@@ -8,10 +8,11 @@ import pytest
 
 from tests.evaluation.eval_helpers import build_dataset, tiny_checkpoint
 from usl.cli.evaluate import main
+from usl.evaluation.choices import ROWS
 from usl.evaluation.evaluate import dataset_spec
 from usl.evaluation.views import FurthestFraction, view_selection
 
-ALL_ROWS = "random,fixed,model,detections,layout_only,sphere_true_depth,model_true_depth"
+ALL_ROWS = ",".join(ROWS)
 
 
 @pytest.fixture(scope="module")
@@ -56,6 +57,8 @@ def test_every_row_with_a_checkpoint(data, tmp_path, capsys):
         "Layout-only (USL)",
         "Sphere-only w/ true depth",
         "USL w/ true depth",
+        "Sphere-only w/ true depth and extent",
+        "USL w/ true depth and extent",
     ]
     by_name = {p["name"]: p for p in document["predictors"]}
     assert by_name["USL"]["num_objects"] == 4 and by_name["USL"]["metrics"]["chamfer"] is not None

@@ -123,3 +123,19 @@ def test_true_depth_moves_objects_to_the_true_centre_or_nearest_depth():
     assert torch.allclose(auto.z, no_meshes.frame.depth_min + 0.3)
     with pytest.raises(ValueError, match="source"):
         TrueDepth(sphere, "median")
+
+
+def test_true_layout_also_gives_each_object_its_true_depth_extent():
+    inp = make_input()
+    sphere = FixedDepthBaseline(z=5.0, rho=0.6)
+    layout = TrueDepth(sphere, "centre", extent=True)
+    assert layout.name == f"{sphere.name} w/ true depth and extent"
+    pred = layout([inp])[0]
+    for n, iid in enumerate(inp.frame.instance_ids.tolist()):
+        d = homogeneous_depth(inp.true_meshes[iid].verts)
+        assert float(pred.rho[n]) == pytest.approx(d.max() - d.min(), rel=1e-5)
+        moved = homogeneous_depth(pred.verts[n])  # the sphere now spans the true mesh's depth range
+        assert moved.min() == pytest.approx(d.min(), rel=0.02) and moved.max() == pytest.approx(d.max(), rel=0.02)
+    np.testing.assert_allclose(projected_box(pred.verts), projected_box(sphere([inp])[0].verts), atol=1e-3)
+    no_meshes = make_input(with_meshes=False)  # no true mesh: the inner extent stays
+    assert torch.allclose(TrueDepth(sphere, "auto", extent=True)([no_meshes])[0].rho, torch.tensor(0.6))

@@ -21,6 +21,8 @@ model only in where z and rho come from and in not deforming the sphere.
   - ``"auto"``: ``"centre"`` where the object has a true mesh, else ``"nearest"``.
   Objects without either keep their predicted z. Depths here are homogeneous depths (K's third
   row), which equal planar z for every upper-triangular K.
+  With ``extent``, rho too becomes the true mesh's depth range where the object has a true mesh:
+  the whole layout true, so what is left of the error is the shape in the normalized cube.
 """
 
 from __future__ import annotations
@@ -144,11 +146,13 @@ class LayoutOnly:
 
 @dataclass
 class TrueDepth:
-    """``inner``'s objects moved to the true depth (paper Table 3c, "oracle depth")."""
+    """``inner``'s objects moved to the true depth (paper Table 3c, "oracle depth"), and with
+    ``extent`` given the true depth extent too."""
 
     inner: Predictor
     source: str = "auto"
     name: str = ""
+    extent: bool = False
 
     def __post_init__(self) -> None:
         if self.source not in TRUE_DEPTH_SOURCES:
@@ -157,7 +161,7 @@ class TrueDepth:
             raise ValueError(
                 f"TrueDepth needs one prediction per ground-truth object; {self.inner.name!r} detects its own"
             )
-        self.name = self.name or f"{self.inner.name} w/ true depth"
+        self.name = self.name or f"{self.inner.name} w/ true depth{' and extent' if self.extent else ''}"
         self.predicts_layout = False
         self.predicts_shape = self.inner.predicts_shape
         self.uses_detections = False
@@ -168,10 +172,27 @@ class TrueDepth:
             K = inp.frame.K.to(pred.verts.device).float()
             z_true = true_depth(inp, pred.instance_ids, pred.rho, self.source).to(pred.z.device)
             z_new = torch.where(torch.isfinite(z_true), z_true, pred.z)
+            rho_new = pred.rho
+            if self.extent:
+                rho_true = true_extent(inp, pred.instance_ids).to(pred.rho.device)
+                rho_new = torch.where(torch.isfinite(rho_true), rho_true, pred.rho)
             cube = frustum_to_cube(pred.verts, pred.boxes, K, pred.z, pred.rho)
-            verts = cube_to_frustum(cube, pred.boxes, K, z_new, pred.rho)
-            out.append(replace(pred, z=z_new, verts=verts))
+            verts = cube_to_frustum(cube, pred.boxes, K, z_new, rho_new)
+            out.append(replace(pred, z=z_new, rho=rho_new, verts=verts))
         return out
+
+
+def true_extent(inp: EvalInput, instance_ids: Tensor) -> Tensor:
+    """True depth extent rho of each object: its true mesh's range of homogeneous depth in the input
+    camera (NaN for an object without a true mesh)."""
+    K = inp.frame.K.double()
+    rho = torch.full((len(instance_ids),), float("nan"), dtype=torch.float64)
+    for n, iid in enumerate(instance_ids.tolist()):
+        mesh = inp.true_meshes.get(int(iid))
+        if mesh is not None:
+            depth = (mesh.verts.double() @ K[2]).cpu()
+            rho[n] = depth.max() - depth.min()
+    return rho.float()
 
 
 def true_depth(inp: EvalInput, instance_ids: Tensor, rho: Tensor, source: str = "auto") -> Tensor:

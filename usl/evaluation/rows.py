@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from functools import partial
 from typing import Any
 
 from usl.errors import UslError
@@ -60,10 +61,10 @@ def _layout_only(sources: Sources) -> Predictor:
     return LayoutOnly(model, level=sources.options.sphere_level, name=f"Layout-only ({model.name})")
 
 
-def _sphere_true_depth(sources: Sources) -> Predictor:
+def _sphere_true_layout(sources: Sources, extent: bool) -> Predictor:
     fixed = sources.baselines["fixed"]
     sphere = FixedDepthBaseline(fixed.z, fixed.rho, level=sources.options.sphere_level, name="Sphere-only")
-    return TrueDepth(sphere, sources.options.true_depth_source, name="Sphere-only w/ true depth")
+    return TrueDepth(sphere, sources.options.true_depth_source, extent=extent)
 
 
 ROW_BUILDERS: dict[str, Row] = {
@@ -72,9 +73,14 @@ ROW_BUILDERS: dict[str, Row] = {
     "model": Row(lambda sources: sources.model, needs_model=True),
     "detections": Row(lambda sources: sources.detections, needs_model=True),
     "layout_only": Row(_layout_only, needs_model=True),
-    "sphere_true_depth": Row(_sphere_true_depth, baseline="fixed"),
+    "sphere_true_depth": Row(partial(_sphere_true_layout, extent=False), baseline="fixed"),
     "model_true_depth": Row(
         lambda sources: TrueDepth(sources.model, sources.options.true_depth_source), needs_model=True
+    ),
+    # the whole layout true (depth and extent, objects with a true mesh): what is left is the shape
+    "sphere_true_layout": Row(partial(_sphere_true_layout, extent=True), baseline="fixed"),
+    "model_true_layout": Row(
+        lambda sources: TrueDepth(sources.model, sources.options.true_depth_source, extent=True), needs_model=True
     ),
 }
 
