@@ -6,7 +6,7 @@
 #   bash scripts/experiments/learning_curve.sh RUN HELDOUT [ITER ...]
 #   bash scripts/experiments/learning_curve.sh runs/experiments/long/train runs/experiments/data/heldout/seed1 1000 2000 4000
 #
-# Environment: USL_CURVE_VIEWS (input views per held-out scene, default every:8, the main job's).
+# Environment: USL_CURVE_VIEWS (input views per held-out scene, default every:8: one view a scene, quicker than the main job's all, for curves).
 # Each checkpoint's report goes to RUN/curve/ITER/; a checkpoint already scored is not redone.
 set -euo pipefail
 cd "$(dirname "$0")/../.."
