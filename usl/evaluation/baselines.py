@@ -185,27 +185,33 @@ class TrueDepth:
 def true_extent(inp: EvalInput, instance_ids: Tensor) -> Tensor:
     """True depth extent rho of each object: its true mesh's range of homogeneous depth in the input
     camera (NaN for an object without a true mesh)."""
+    near, far = _mesh_depth_range(inp, instance_ids)
+    return (far - near).float()
+
+
+def _mesh_depth_range(inp: EvalInput, instance_ids: Tensor) -> tuple[Tensor, Tensor]:
+    """(N,) float64 nearest and farthest homogeneous depth (K's third row) of each object's true mesh
+    in the input camera, NaN for an object without one."""
     K = inp.frame.K.double()
-    rho = torch.full((len(instance_ids),), float("nan"), dtype=torch.float64)
+    near = torch.full((len(instance_ids),), float("nan"), dtype=torch.float64)
+    far = near.clone()
     for n, iid in enumerate(instance_ids.tolist()):
         mesh = inp.true_meshes.get(int(iid))
         if mesh is not None:
             depth = (mesh.verts.double() @ K[2]).cpu()
-            rho[n] = depth.max() - depth.min()
-    return rho.float()
+            near[n], far[n] = depth.min(), depth.max()
+    return near, far
 
 
 def true_depth(inp: EvalInput, instance_ids: Tensor, rho: Tensor, source: str = "auto") -> Tensor:
     """True frustum depth z of each object (NaN where the source has no answer); see module doc."""
     frame = inp.frame
-    K = frame.K.double()
     position = {int(i): p for p, i in enumerate(frame.instance_ids.tolist())}
+    near, far = _mesh_depth_range(inp, instance_ids)
     z = torch.full((len(instance_ids),), float("nan"), dtype=torch.float64)
     for n, iid in enumerate(instance_ids.tolist()):
-        mesh = inp.true_meshes.get(int(iid))
-        if source in ("auto", "centre") and mesh is not None:
-            depth = (mesh.verts.double() @ K[2]).cpu()  # homogeneous depth (K @ X)_3
-            z[n] = 0.5 * (depth.min() + depth.max())
+        if source in ("auto", "centre") and not near[n].isnan():
+            z[n] = 0.5 * (near[n] + far[n])
         elif source in ("auto", "nearest") and int(iid) in position:
             z[n] = float(frame.depth_min[position[int(iid)]]) + 0.5 * float(rho[n])
     return z.float()
