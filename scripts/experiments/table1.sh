@@ -9,13 +9,17 @@
 #   bash scripts/experiments/table1.sh --dry-run        # print the budget (iterations, runs, estimated time) only
 #   bash scripts/experiments/table1.sh --quick          # smoke run: 10-scene training build, 3-scene held-out builds, 10 iterations, 2 seeds (~4 min)
 #   bash scripts/experiments/table1.sh --seeds 0,1,2,3,4 --iters 600 --out runs/table1_600
+#   bash scripts/experiments/table1.sh --record docs/results/table1   # also keep the scores in the checkout
 #
 # Options: --seeds LIST (train.seed values; default 0,1,2, --quick 0,1), --iters N (per run;
 # default the recipe's optim.max_iter, and the recipe's schedule is scaled to another N),
 # --out DIR (default runs/table1, --quick runs/table1_quick), --data DIR (the training build and
 # DATA/heldout/seed<k>; default runs/experiments/data, the builds of
 # scripts/experiments/recipe_experiment.sh, --quick OUT/data),
-# --jobs N (runs side by side, one thread each; default: the cores), --config RECIPE (default tiny).
+# --jobs N (runs side by side, one thread each; default: the cores), --config RECIPE (default tiny),
+# --record DIR (keep every finished run's scores, the baselines', the plan and the table in DIR, a
+# small tree in OUT's layout without checkpoints or pictures; a run recorded there and missing from
+# OUT is copied into OUT first, so the table resumes from DIR on a machine that lacks OUT).
 # Rows and their overrides: scripts/experiments/table1_plan.py. A row whose config key this checkout lacks is
 # reported as "skipped: key not available". The budget is printed before anything runs.
 #
@@ -32,7 +36,7 @@ export PYOPENGL_PLATFORM=${PYOPENGL_PLATFORM:-egl}
 # this checkout's code (python -m, not the console scripts), whatever pip last installed
 export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}"
 source scripts/lib/scene_shapes_builds.sh
-ARGS="$*" QUICK=0 DRY=0 SEEDS= ITERS= OUT= DATA= JOBS=$(cores) CONFIG=tiny
+ARGS="$*" QUICK=0 DRY=0 SEEDS= ITERS= OUT= DATA= JOBS=$(cores) CONFIG=tiny RECORD=
 # one thread per process: --jobs processes share the cores (oversubscribed threads slow every op)
 export OMP_NUM_THREADS=1 MKL_NUM_THREADS=1
 usage() { sed -n '2,/^set -e/p' "$0" | sed '$d' | sed 's/^# \{0,1\}//'; }
@@ -47,6 +51,7 @@ while (($#)); do
     --data) value "$@"; DATA=$2; shift ;;
     --jobs) value "$@"; JOBS=$2; shift ;;
     --config) value "$@"; CONFIG=$2; shift ;;
+    --record) value "$@"; RECORD=$2; shift ;;
     -h|--help) usage; exit 0 ;;
     *) echo "table1.sh: error: unknown option $1 (see --help)" >&2; exit 2 ;;
   esac
@@ -67,16 +72,24 @@ fi
 [[ $JOBS =~ ^[1-9][0-9]*$ ]] || { echo "table1.sh: error: --jobs $JOBS is not a positive integer" >&2; exit 2; }
 IFS=, read -ra SEED_LIST <<< "$SEEDS"
 TRAIN=$DATA/train_seed0_$SCENES  # as recipe_experiment.sh names it; heldout_builds makes DATA/heldout/seed<k>
-HELDOUT="$DATA/heldout/seed{$(IFS=,; echo "${HELDOUT_SEEDS[*]}")}"  # for the budget and the log
+HELDOUT="$DATA/heldout/seed{$(IFS=,; echo "${HELDOUT_SEEDS[*]}")}"  # for the log
 start=$(date +%s)
 
-echo "== Table 1 at CPU scale -> $OUT"
+record() {  # WHAT...: runs/<row>/seed<k>, baselines or files of OUT, into RECORD (see table1_record.py)
+  [[ -z $RECORD ]] || python3 scripts/experiments/table1_record.py save "$OUT" "$RECORD" "$@"
+}
+
+echo "== Table 1 at CPU scale -> $OUT${RECORD:+ (scores recorded in $RECORD)}"
 mkdir -p "$OUT"
+[[ -z $RECORD ]] || python3 scripts/experiments/table1_record.py restore "$RECORD" "$OUT"
+# the builds are named by what makes them (seeds and sizes), not by where they are, so a recorded
+# table resumes on another machine whose builds lie elsewhere
 python3 scripts/experiments/table1_plan.py --config "$CONFIG" ${ITERS:+--iters "$ITERS"} --seeds "$SEEDS" --jobs "$JOBS" --out "$OUT" \
-  --data "train=$TRAIN ($SCENES scenes) heldout=$HELDOUT ($HELDOUT_SCENES scenes each${HELDOUT_OPTS[*]:+, ${HELDOUT_OPTS[*]}}, split train, input views all)" \
+  --data "train=Scene-Shapes seed 0 ($SCENES scenes) heldout=Scene-Shapes seeds $(IFS=,; echo "${HELDOUT_SEEDS[*]}") ($HELDOUT_SCENES scenes each${HELDOUT_OPTS[*]:+, ${HELDOUT_OPTS[*]}}, split train, input views all)" \
   --heldout-builds ${#HELDOUT_SEEDS[@]} --heldout-scenes "$HELDOUT_SCENES" \
   ${EXTRA[@]+"${EXTRA[@]}"} | tee "$OUT/plan.txt"
 ((DRY)) && exit 0
+record budget.txt plan.tsv plan.txt
 
 echo "== builds: $TRAIN, $HELDOUT"
 build_scene_shapes "$TRAIN" 0 "$SCENES" --quiet
@@ -123,9 +136,11 @@ score() {  # RUN_ID LABEL EVAL usl-eval options...: every held-out build EVAL la
 }
 
 baselines() {
-  [[ -f $OUT/baselines/eval/summary.json ]] && return 0
-  score baselines baselines "$OUT/baselines/eval" --rows fixed,random || return 1
-  progress "Fixed and Random depth scored"
+  if [[ ! -f $OUT/baselines/eval/summary.json ]]; then
+    score baselines baselines "$OUT/baselines/eval" --rows fixed,random || return 1
+    progress "Fixed and Random depth scored"
+  fi
+  record baselines
 }
 
 run_one() {  # SLUG LABEL SEED OVERRIDES...: train (or resume), then score on the held-out builds
@@ -136,6 +151,7 @@ run_one() {  # SLUG LABEL SEED OVERRIDES...: train (or resume), then score on th
   for o in "$@"; do [[ $o == optim.max_iter=* ]] && iters=${o#*=}; done
   if [[ -f $run/eval/summary.json ]]; then
     progress "$label, seed $seed: done before: $(python3 scripts/experiments/table1_summary.py --run "$run/eval")"
+    record "runs/$slug/seed$seed"
     return 0
   fi
   mkdir -p "$run"
@@ -156,6 +172,7 @@ run_one() {  # SLUG LABEL SEED OVERRIDES...: train (or resume), then score on th
   score "${slug}_$seed" "$label, seed $seed" "$run/eval" --checkpoint "$run/train" --rows model || return 1
   echo $(( $(date +%s) - began )) > "$THIS_RUN/${slug}_$seed.s"
   progress "$label, seed $seed: $what; scored in $(( $(date +%s) - scoring )) s: $(python3 scripts/experiments/table1_summary.py --run "$run/eval")"
+  record "runs/$slug/seed$seed"
 }
 
 launch() {  # run "$@" in the background once fewer than JOBS runs are going
@@ -186,5 +203,6 @@ python3 scripts/experiments/table1_summary.py "$OUT"
   echo "Command: \`bash scripts/experiments/table1.sh${ARGS:+ $ARGS}\`; this invocation took $(( ($(date +%s) - start) / 60 )) min wall."
   sed 's/^/    /' "$OUT/plan.txt"
 } >> "$OUT/table1.md"
+record table1.md table1.json
 failed=$(find "$THIS_RUN" -name '*.failed' | wc -l)
 if ((failed)); then echo "table1.sh: $failed run(s) failed; the table holds the others (re-run to retry)" >&2; exit 1; fi

@@ -172,7 +172,7 @@ def plan(
         out,
         f"config={config} (resolved sha256 {recipe_digest(config, budget)})\noverrides={' '.join(budget)}\n{data}\n",
     )
-    lines, trained, cost, rates = [], [], 0.0, []
+    lines, trained, cost, rates, runs_left = [], [], 0.0, [], 0
     for row in TRAINED:
         overrides = budget + list(row.overrides)
         status = row_status(config, overrides)
@@ -181,7 +181,9 @@ def plan(
             trained.append(row)
             rate = measured_seconds_per_iter(out, row, iters)
             rates.append(f"{row.slug} {rate:.2f}")
-            cost += len(seeds) * (iters * rate + per_run)
+            left = [s for s in seeds if not (out / "runs" / row.slug / f"seed{s}" / "eval" / "summary.json").is_file()]
+            runs_left += len(left)
+            cost += len(left) * (iters * rate + per_run)
     (out / "plan.tsv").write_text("\n".join(lines) + "\n")
     runs = len(trained) * len(seeds)
     skipped = [
@@ -193,7 +195,10 @@ def plan(
         f"  overrides of every run: {' '.join(budget)}",
         f"  seconds per iteration: {', '.join(rates) or '-'} (measured, see scripts/experiments/table1_plan.py), "
         f"plus ~{per_run:.0f} s per run for scoring {eval_views} held-out input views ({heldout_builds} builds, every input view)",
-        f"  estimated time: {duration(cost / max(jobs, 1))} on {jobs} idle cores, not counting the builds and runs already done",
+        f"  estimated time: {duration(cost / max(jobs, 1))} on {jobs} idle cores for the {runs_left} runs not scored yet "
+        "(builds not counted)"
+        if runs_left
+        else "  estimated time: none, every run is scored",
     ]
     text += [f"  {s}" for s in skipped]
     return "\n".join(text)

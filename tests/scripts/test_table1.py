@@ -1,5 +1,6 @@
-"""scripts/experiments/table1_plan.py and table1_summary.py: Table 1's rows, budget, mean ± std over
-seeds of each run's mean over the held-out builds, and the paper's orderings judged on it.
+"""scripts/experiments/table1_plan.py, table1_summary.py and table1_record.py: Table 1's rows, budget,
+mean ± std over seeds of each run's mean over the held-out builds, the paper's orderings judged on
+it, and its scores kept in a record that the table resumes from.
 
 The fixtures are the files table1.sh leaves: usl-eval's ``metrics.json`` of each held-out build
 written by usl-eval's own writer (``write_report``) and combined by ``table1_summary.py --combine``
@@ -10,12 +11,15 @@ the expected numbers come from numpy and pandas, the expected verdicts from the 
 from __future__ import annotations
 
 import json
+import re
+import shutil
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 import pytest
 import table1_plan
+import table1_record
 import table1_summary
 
 from usl.config import CONFIG_DIR, load_config
@@ -211,6 +215,7 @@ def test_plan_skips_rows_whose_key_is_missing_and_keeps_its_budget(tmp_path):
     assert table1_plan.heldout_input_views(3) == 8  # --quick's: one train scene of three
     lines = [line.split("\t") for line in (tmp_path / "plan.tsv").read_text().splitlines()]
     assert [line[0] for line in lines] == [r.slug for r in table1_plan.TRAINED]
+    assert "for the 10 runs not scored yet" in text
     usl5 = next(line for line in lines if line[0] == "usl5")
     assert usl5[2] == "train" and usl5[3].split() == table1_plan.budget_overrides(load_config("tiny"), 40) + [
         "val.period=0",
@@ -373,3 +378,99 @@ def test_an_ordering_needing_an_unfinished_row_is_not_measured_unless_another_co
     assert judged["a"]["missing"] == ["Fixed depth", "Random depth", "USL (5) w/o ℓ_dist"]
     text = (tmp_path / "t2" / "table1.md").read_text()
     assert "**not measured** (no finished run of Fixed depth, Random depth, USL (5) w/o ℓ_dist)" in text
+
+
+def test_the_estimate_counts_only_runs_not_scored_and_their_measured_cpu_time(tmp_path):
+    text = table1_plan.plan("tiny", 40, [0, 1], 2, tmp_path, data="train=a heldout=b")
+    before = re.search(r"estimated time: (.*) on 2 idle cores for the 10 runs", text)
+    run = tmp_path / "runs" / "usl2" / "seed0"
+    (run / "eval").mkdir(parents=True)
+    (run / "eval" / "summary.json").write_text("{}")
+    (run / "train_time.txt").write_text("100 4000\n")  # wall, CPU seconds: 100 s an iteration
+    text = table1_plan.plan("tiny", 40, [0, 1], 2, tmp_path, data="train=a heldout=b")
+    assert before and "for the 9 runs not scored yet" in text and "usl2 100.00" in text
+    per_run = 3 * table1_plan.EVAL_START_SECONDS + 384 * table1_plan.EVAL_SECONDS_PER_VIEW
+    others = sum(40 * table1_plan.MEASURED_SECONDS_PER_ITER[r.slug] + per_run for r in table1_plan.TRAINED[1:])
+    expected = (40 * 100 + per_run + 2 * others) / 2  # usl2's seed 1 at its measured rate, both seeds of the rest
+    assert f"estimated time: {table1_plan.duration(expected)} on 2 idle cores" in text
+
+
+def _files(folder: Path) -> list[str]:
+    return sorted(str(p.relative_to(folder)) for p in folder.rglob("*") if p.is_file())
+
+
+def test_a_record_holds_the_scores_and_gives_the_same_table(table, tmp_path):
+    out, _ = table
+    record = tmp_path / "record"
+    (out / "budget.txt").write_text("config=tiny\n")
+    (out / "runs" / "usl2" / "seed0" / "train_time.txt").write_text("10 20\n")
+    folders = table1_record.finished(out)
+    assert folders == ["baselines"] + [f"runs/{slug}/seed{s}" for slug, seeds in sorted(SEEDS.items()) for s in seeds]
+    assert table1_record.main(["save", str(out), str(record), *folders, "plan.tsv", "budget.txt"]) == 0
+    kept = _files(record)
+    assert not [f for f in kept if f.endswith(".pt") or ".partial" in f or ".previous" in f]
+    assert "runs/usl2/seed0/train_time.txt" in kept and "runs/usl2/seed0/train/checkpoints/last_checkpoint" in kept
+    assert {f for f in kept if f.startswith("runs/usl5/seed1/eval/")} == {
+        f"runs/usl5/seed1/eval/{name}"
+        for name in ["summary.json"] + [f"seed{b}/{n}" for b in BUILDS for n in ("metrics.json", "table.md")]
+    }
+    assert table1_summary.main([str(out)]) == 0 and table1_summary.main([str(record)]) == 0
+    assert (record / "table1.md").read_text() == (out / "table1.md").read_text()  # checkpoint paths included
+
+
+def test_a_table_resumes_from_its_record(table, tmp_path, capsys):
+    out, _ = table
+    record, fresh = tmp_path / "record", tmp_path / "fresh"
+    (out / "budget.txt").write_text("config=tiny\n")
+    assert (
+        table1_record.main(["save", str(out), str(record), *table1_record.finished(out), "plan.tsv", "budget.txt"]) == 0
+    )
+    # another machine: the same budget, one run already scored there, the rest only in the record
+    scored_here = fresh / "runs" / "usl2" / "seed0"
+    shutil.copytree(out / "runs" / "usl2" / "seed0", scored_here)
+    (scored_here / "eval" / "summary.json").write_text(json.dumps({"kept": True}))
+    (fresh / "budget.txt").write_text("config=tiny\n")
+    assert table1_record.main(["restore", str(record), str(fresh)]) == 0
+    restored = [line.split()[2] for line in capsys.readouterr().out.splitlines()]
+    assert restored == [f for f in table1_record.finished(out) if f != "runs/usl2/seed0"]
+    assert json.loads((scored_here / "eval" / "summary.json").read_text()) == {"kept": True}  # not overwritten
+    assert table1_record.finished(fresh) == table1_record.finished(out)  # table1.sh will not redo them
+    shutil.copyfile(out / "runs" / "usl2" / "seed0" / "eval" / "summary.json", scored_here / "eval" / "summary.json")
+    shutil.copyfile(out / "plan.tsv", fresh / "plan.tsv")
+    assert table1_summary.main([str(out)]) == 0 and table1_summary.main([str(fresh)]) == 0
+    assert (fresh / "table1.md").read_text() == (out / "table1.md").read_text()
+    # the unscored runs of the output folder were neither recorded nor restored
+    assert not (fresh / "runs" / "usl5" / "seed3").exists() and not (fresh / "runs" / "usl5" / "seed5").exists()
+
+
+def test_a_record_of_another_budget_or_an_unscored_run_is_refused(table, tmp_path, capsys):
+    out, _ = table
+    record = tmp_path / "record"
+    (out / "budget.txt").write_text("config=tiny\noverrides=optim.max_iter=20\n")
+    assert table1_record.main(["save", str(out), str(record), "budget.txt", "runs/usl2/seed0"]) == 0
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "budget.txt").write_text("config=tiny\noverrides=optim.max_iter=40\n")
+    assert table1_record.main(["restore", str(record), str(other)]) == 2
+    assert "hold runs of different budgets" in capsys.readouterr().err
+    assert not (other / "runs").exists()
+    assert table1_record.main(["save", str(out), str(record), "runs/usl5/seed5"]) == 2  # stopped while scoring
+    assert f"{out / 'runs' / 'usl5' / 'seed5'}: not scored yet" in capsys.readouterr().err
+    assert table1_record.main(["save", str(out), str(record), "runs/usl5"]) == 2
+    assert "not a run" in capsys.readouterr().err
+
+
+def test_saving_a_run_again_replaces_its_record_whole(table, tmp_path):
+    out, _ = table
+    record = tmp_path / "record"
+    run = "runs/usl5/seed1"
+    assert table1_record.main(["save", str(out), str(record), run]) == 0
+    (record / run / "eval" / "stale.txt").write_text("from an earlier save")
+    (out / run / "eval" / "seed3" / "table.md").unlink()
+    assert table1_record.main(["save", str(out), str(record), run]) == 0
+    assert "eval/seed2/table.md" in _files(record / run) and "eval/seed3/metrics.json" in _files(record / run)
+    assert (
+        not (record / run / "eval" / "stale.txt").exists()
+        and not (record / run / "eval" / "seed3" / "table.md").exists()
+    )
+    assert sorted(p.name for p in (record / "runs" / "usl5").iterdir()) == ["seed1"]  # no partial or previous copy left
