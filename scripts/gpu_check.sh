@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# One prepared check for a machine with a CUDA GPU (never part of CI), within 9 minutes:
+# One prepared check for a machine with a CUDA GPU (never part of CI), within 8.5 minutes of GPU steps:
 #   1. the CUDA tests            (tests that skip themselves without a GPU)
 #   2. bench/rasterizer.py       --device cuda
 #   3. bench/train.py            hypersim recipe at the paper's 768x1024, 2 images x 5 views per GPU,

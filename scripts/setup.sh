@@ -9,8 +9,9 @@
 # USL_DEPS=lock (default) installs the versions pinned in scripts/requirements.lock, the ones the
 # figures in docs/results.md were measured with; USL_DEPS=newest the newest versions pyproject.toml
 # allows; USL_DEPS=none installs nothing (an environment made with uv, conda or poetry) and only
-# checks it. A torch already installed is kept (a CUDA or CPU build you chose); pip installs torch
-# otherwise (a local CPU wheel where pip is configured to find one, else PyPI's default build).
+# checks it. A torch already installed is kept (a CUDA or CPU build you chose) if pyproject.toml
+# allows it (2.13 or newer); pip installs torch otherwise (a local CPU wheel where pip is configured
+# to find one, else PyPI's default build).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 TESTS=0
@@ -33,22 +34,33 @@ apt_install() {  # apt_install PACKAGE... : Debian/Ubuntu packages, if this user
 
 EXTRAS=""
 ((TESTS)) && EXTRAS="[test,ray]"
+CONSTRAINTS=$(mktemp)
+trap 'rm -f "$CONSTRAINTS"' EXIT
+# A torch the environment already has, if pyproject.toml allows it: pinned to itself, so that
+# neither the lock nor an eager upgrade swaps a CUDA build someone chose for PyPI's default build.
+KEPT_TORCH=$($PY - <<'PY' 2>/dev/null || true
+import re, torch
+version = torch.__version__
+major, minor = (int(x) for x in re.match(r"(\d+)\.(\d+)", version).groups())
+if (2, 13) <= (major, minor) < (3, 0):  # pyproject.toml: torch>=2.13,<3
+    print(version)
+PY
+)
 case $DEPS in
   lock)
-    # the lock constrains what gets installed; a torch the environment already has stays
-    CONSTRAINTS=$(mktemp)
-    trap 'rm -f "$CONSTRAINTS"' EXIT
-    if $PY -c 'import torch' 2>/dev/null; then
-      grep -v '^torch==' scripts/requirements.lock >"$CONSTRAINTS"
+    grep -v '^torch==' scripts/requirements.lock >"$CONSTRAINTS"
+    if [[ -n $KEPT_TORCH ]]; then
+      echo "torch==$KEPT_TORCH" >>"$CONSTRAINTS"
     else
-      cp scripts/requirements.lock "$CONSTRAINTS"
+      grep '^torch==' scripts/requirements.lock >>"$CONSTRAINTS" || true
     fi
     say "installing usl (editable)${EXTRAS:+ with the extras $EXTRAS} at the versions of scripts/requirements.lock"
     $PY -m pip install -q --root-user-action=ignore -c "$CONSTRAINTS" -e ".$EXTRAS"
     ;;
   newest)
-    say "installing usl (editable)${EXTRAS:+ with the extras $EXTRAS} with the newest versions pyproject.toml allows"
-    $PY -m pip install -q --root-user-action=ignore --upgrade --upgrade-strategy eager -e ".$EXTRAS"
+    [[ -z $KEPT_TORCH ]] || echo "torch==$KEPT_TORCH" >"$CONSTRAINTS"
+    say "installing usl (editable)${EXTRAS:+ with the extras $EXTRAS} with the newest versions pyproject.toml allows${KEPT_TORCH:+ (keeping torch $KEPT_TORCH)}"
+    $PY -m pip install -q --root-user-action=ignore --upgrade --upgrade-strategy eager -c "$CONSTRAINTS" -e ".$EXTRAS"
     ;;
   none) ;;
   *)

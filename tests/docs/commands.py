@@ -161,7 +161,12 @@ def parse(parser: argparse.ArgumentParser, args: list[str], partial: bool) -> ar
         each.error = _raise  # type: ignore[method-assign]
         if partial:
             _relax(each)
-    args = [a.strip("[]") if a.startswith("[") or a.endswith("]") else a for a in args if a not in ELISION]
+    # "[--flag]" and "[ARG]" are usage notation; a "key=[1,2]" override's brackets are its value
+    args = [
+        a.strip("[]") if a.startswith("[") or (a.endswith("]") and "=[" not in a) else a
+        for a in args
+        if a not in ELISION
+    ]
     if "-h" in args or "--help" in args:
         args = [a for a in args if a not in ("-h", "--help")]
     namespace, unknown = parser.parse_known_args(args)
