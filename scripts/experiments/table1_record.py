@@ -7,7 +7,7 @@
 and restores before it plans. Table 1 at the recipe's length takes longer than one machine may be
 kept; its training runs are the cost, and what the table reads of them is a few kilobytes a run.
 The record keeps the output folder's layout with only those files (no checkpoints, no pictures,
-no per-object reports), so ``table1_summary.py DIR`` writes the same table from it as from the
+no per-object reports, no Markdown reports), so ``table1_summary.py DIR`` writes the same table from it as from the
 output folder, and a run recorded there counts as finished in an output folder it is restored into.
 """
 
@@ -21,14 +21,14 @@ from collections.abc import Sequence
 from pathlib import Path
 
 # What a finished run's (or the baselines') figures rest on, relative to its folder: the recipe it
-# trained, the checkpoint it scored (the pointer only), its CPU time, and usl-eval's reports.
+# trained, the checkpoint it scored (the pointer only), its CPU time, and usl-eval's reports
+# (metrics.json; not table.md, whose links to pictures and training curves the record would break).
 RECORDED = (
     "train/config.yaml",
     "train/checkpoints/last_checkpoint",
     "train_time.txt",
     "eval/summary.json",
     "eval/seed*/metrics.json",
-    "eval/seed*/table.md",
     "eval/seed*.time",
 )
 BUDGET = "budget.txt"

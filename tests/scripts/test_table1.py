@@ -411,8 +411,7 @@ def test_a_record_holds_the_scores_and_gives_the_same_table(table, tmp_path):
     assert not [f for f in kept if f.endswith(".pt") or ".partial" in f or ".previous" in f]
     assert "runs/usl2/seed0/train_time.txt" in kept and "runs/usl2/seed0/train/checkpoints/last_checkpoint" in kept
     assert {f for f in kept if f.startswith("runs/usl5/seed1/eval/")} == {
-        f"runs/usl5/seed1/eval/{name}"
-        for name in ["summary.json"] + [f"seed{b}/{n}" for b in BUILDS for n in ("metrics.json", "table.md")]
+        f"runs/usl5/seed1/eval/{name}" for name in ["summary.json"] + [f"seed{b}/metrics.json" for b in BUILDS]
     }
     assert table1_summary.main([str(out)]) == 0 and table1_summary.main([str(record)]) == 0
     assert (record / "table1.md").read_text() == (out / "table1.md").read_text()  # checkpoint paths included
@@ -466,11 +465,8 @@ def test_saving_a_run_again_replaces_its_record_whole(table, tmp_path):
     run = "runs/usl5/seed1"
     assert table1_record.main(["save", str(out), str(record), run]) == 0
     (record / run / "eval" / "stale.txt").write_text("from an earlier save")
-    (out / run / "eval" / "seed3" / "table.md").unlink()
+    (out / run / "eval" / "seed3" / "metrics.json").rename(out / run / "eval" / "seed3" / "kept.json")
     assert table1_record.main(["save", str(out), str(record), run]) == 0
-    assert "eval/seed2/table.md" in _files(record / run) and "eval/seed3/metrics.json" in _files(record / run)
-    assert (
-        not (record / run / "eval" / "stale.txt").exists()
-        and not (record / run / "eval" / "seed3" / "table.md").exists()
-    )
+    assert "eval/seed2/metrics.json" in _files(record / run) and "eval/seed3/metrics.json" not in _files(record / run)
+    assert not (record / run / "eval" / "stale.txt").exists()
     assert sorted(p.name for p in (record / "runs" / "usl5").iterdir()) == ["seed1"]  # no partial or previous copy left
