@@ -22,6 +22,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
+from table1_record import finished  # a sibling script: python puts this folder on sys.path
+
 from data_specs import load_dataset_spec
 from pipelines.scene_shapes.plan import split_counts
 from usl.config import Config, ConfigError, dump_config, load_config
@@ -173,6 +175,7 @@ def plan(
         f"config={config} (resolved sha256 {recipe_digest(config, budget)})\noverrides={' '.join(budget)}\n{data}\n",
     )
     lines, trained, cost, rates, runs_left = [], [], 0.0, [], 0
+    scored = set(finished(out))
     for row in TRAINED:
         overrides = budget + list(row.overrides)
         status = row_status(config, overrides)
@@ -181,7 +184,7 @@ def plan(
             trained.append(row)
             rate = measured_seconds_per_iter(out, row, iters)
             rates.append(f"{row.slug} {rate:.2f}")
-            left = [s for s in seeds if not (out / "runs" / row.slug / f"seed{s}" / "eval" / "summary.json").is_file()]
+            left = [s for s in seeds if f"runs/{row.slug}/seed{s}" not in scored]
             runs_left += len(left)
             cost += len(left) * (iters * rate + per_run)
     (out / "plan.tsv").write_text("\n".join(lines) + "\n")
