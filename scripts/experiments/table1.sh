@@ -95,14 +95,17 @@ echo "== builds: $TRAIN, $HELDOUT"
 build_scene_shapes "$TRAIN" 0 "$SCENES" --quiet
 heldout_builds "$DATA" --quiet ${HELDOUT_OPTS[@]+"${HELDOUT_OPTS[@]}"}
 
-THIS_RUN=$OUT/.this_run  # this invocation's finished runs (their durations) and failures
-rm -rf "$THIS_RUN" && mkdir -p "$THIS_RUN" "$OUT/runs"
+mkdir -p "$OUT/runs"
+# this invocation's finished runs (their durations) and failures: its own folder, so that invocations
+# for other seeds may share OUT
+THIS_RUN=$(mktemp -d "$OUT/.this_run.XXXXXX")
+trap 'rm -rf "$THIS_RUN"' EXIT
 mapfile -t PLAN < "$OUT/plan.tsv"
 total=$(( $(cut -f3 "$OUT/plan.tsv" | grep -cx train || true) * ${#SEED_LIST[@]} ))
 
 progress() {  # one line per finished run: runs done, time so far, estimate of what is left
   local done timed left=""
-  done=$(find "$OUT/runs" -path '*/eval/summary.json' | wc -l)
+  done=$(for seed in "${SEED_LIST[@]}"; do ls "$OUT"/runs/*/seed"$seed"/eval/summary.json 2>/dev/null; done | wc -l)
   timed=$(cat "$THIS_RUN"/*.s 2>/dev/null | awk '{ s += $1; n++ } END { if (n) printf "%d", s / n }' || true)
   if [[ -n $timed ]] && ((done < total)); then left=", ~$(( (total - done) * timed / JOBS / 60 + 1 )) min left"; fi
   echo "[$done/$total runs, $(( ($(date +%s) - start) / 60 )) min$left] $*" | tee -a "$OUT/progress.log"
