@@ -161,13 +161,19 @@ run_one() {  # SLUG LABEL SEED OVERRIDES...: train (or resume), then score on th
   if [[ -f $run/train/checkpoints/last_checkpoint && $(< "$run/train/checkpoints/last_checkpoint") == "$(printf 'model_%07d.pt' "$iters")" ]]; then
     what="trained before"
   else
-    if [[ -f $run/train/checkpoints/last_checkpoint ]]; then resume=(--resume); else rm -rf "$run/train"; fi
-    # CPU time is the figure that holds on a shared machine (table1_plan.py estimates from it)
-    /usr/bin/time -o "$run/train_time.txt" -f "%e %U" \
+    local last=$run/train/checkpoints/last_checkpoint from=0 name
+    if [[ -f $last ]]; then
+      resume=(--resume) name=$(< "$last") && from=$((10#${name:6:7}))  # model_<7 digits>.pt
+    else
+      rm -rf "$run/train"
+    fi
+    # CPU time is the figure that holds on a shared machine (table1_plan.py estimates from it): wall
+    # and CPU seconds of this invocation, and the iterations it trained (fewer when it resumed)
+    /usr/bin/time -o "$run/train_time.txt" -f "%e %U $((iters - from))" \
       python3 -m usl.cli.train ${resume[@]+"${resume[@]}"} --config "$CONFIG" --out "$run/train" data.root="$TRAIN" \
       train.seed="$seed" train.cpu_threads=1 "$@" > "$run/train.log" 2>&1 \
       || fail "${slug}_$seed" "$label, seed $seed: usl-train" "$run/train.log" || return 1
-    what=$(awk -v n="$iters" '{ printf "trained %d iterations in %d s wall, %d s CPU (%.2f s per iteration, start-up included)", n, $1, $2, $2 / n }' \
+    what=$(awk -v from="$from" '{ printf "trained %d iterations%s in %d s wall, %d s CPU (%.2f s per iteration, start-up included)", $3, from ? " from " from : "", $1, $2, $2 / $3 }' \
       "$run/train_time.txt")
   fi
   local scoring

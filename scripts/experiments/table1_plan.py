@@ -114,13 +114,14 @@ def _unknown_key(config: str, override: str) -> bool:
 
 def measured_seconds_per_iter(out: Path, row: Row, iters: int) -> float:
     """CPU seconds per iteration of this row's finished runs in ``out`` (table1.sh's
-    ``train_time.txt``: wall and user CPU seconds of a whole run), else the measured constant."""
-    cpu = [
-        float(t.read_text().split()[1])
-        for t in sorted((out / "runs" / row.slug).glob("seed*/train_time.txt"))
-        if len(t.read_text().split()) == 2
-    ]
-    return statistics.fmean(cpu) / iters if cpu else MEASURED_SECONDS_PER_ITER[row.slug]
+    ``train_time.txt``: wall and user CPU seconds of the run's last invocation, then the iterations
+    it trained; without them, all ``iters``), else the measured constant."""
+    rates = []
+    for path in sorted((out / "runs" / row.slug).glob("seed*/train_time.txt")):
+        fields = path.read_text().split()
+        if len(fields) in (2, 3) and float(fields[2] if len(fields) == 3 else iters) > 0:
+            rates.append(float(fields[1]) / float(fields[2] if len(fields) == 3 else iters))
+    return statistics.fmean(rates) if rates else MEASURED_SECONDS_PER_ITER[row.slug]
 
 
 def heldout_input_views(scenes: int) -> int:

@@ -393,6 +393,11 @@ def test_the_estimate_counts_only_runs_not_scored_and_their_measured_cpu_time(tm
     others = sum(40 * table1_plan.MEASURED_SECONDS_PER_ITER[r.slug] + per_run for r in table1_plan.TRAINED[1:])
     expected = (40 * 100 + per_run + 2 * others) / 2  # usl2's seed 1 at its measured rate, both seeds of the rest
     assert f"estimated time: {table1_plan.duration(expected)} on 2 idle cores" in text
+    # a run resumed at iteration 30 timed its last 10 iterations only: 50 s an iteration
+    (tmp_path / "runs" / "usl2" / "seed1").mkdir()
+    (tmp_path / "runs" / "usl2" / "seed1" / "train_time.txt").write_text("30 500 10\n")
+    text = table1_plan.plan("tiny", 40, [0, 1], 2, tmp_path, data="train=a heldout=b")
+    assert "usl2 75.00" in text  # the mean of the two runs' rates
 
 
 def _files(folder: Path) -> list[str]:
