@@ -8,9 +8,12 @@ is scored three ways by usl-eval, on every input view of each held-out build:
 - ``global stage only``: the refinement stages' offset layers zeroed, so each mesh is the global
   stage's (what the sampler cannot change);
 - ``other sampler``: the same weights reading the vertex features through the other sampler
-  (neither sampler has weights).
-Small gaps from "as trained" to "global stage only" say the refinement stages draw little; small
-gaps to "other sampler" say the two samplers read nearly the same features.
+  (neither sampler has weights);
+- ``no vertex features``: the refinement stages' bottleneck weights zeroed (their biases kept), so
+  the stages see each vertex's position but nothing sampled from the image.
+The gap from "global stage only" to "as trained" is what the refinement stages draw; the gap from
+"no vertex features" to "as trained" the part of it that reads the image, the only part a sampler
+can change; the gap to "other sampler" what the sampler changes of it.
 
     python3 scripts/experiments/sampler_why.py RUN [RUN ...] --out DIR --heldout H1 [H2 ...]
 
@@ -32,7 +35,7 @@ from table1_summary import TABLE_COLUMNS, scored_checkpoint  # a sibling script
 from usl.evaluation.report import builds_summary, mean_std, read_builds, row_values
 from usl.records.atomic import write_text_atomic
 
-VARIANTS = ("as trained", "global stage only", "other sampler")
+VARIANTS = ("as trained", "global stage only", "other sampler", "no vertex features")
 OTHER = {"roimap": "vertalign", "vertalign": "roimap"}
 
 
@@ -48,6 +51,10 @@ def variant_payload(payload: dict, variant: str) -> dict:
                 payload["model"][name] = torch.zeros_like(value)
     elif variant == "other sampler":
         shape["sampler"] = OTHER[shape["sampler"]]
+    elif variant == "no vertex features":
+        for name, value in payload["model"].items():
+            if name.startswith("shape_head.stages.") and name.endswith(".bottleneck.weight"):
+                payload["model"][name] = torch.zeros_like(value)
     return payload
 
 

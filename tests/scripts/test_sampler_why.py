@@ -10,7 +10,7 @@ from tests.evaluation.eval_helpers import tiny_checkpoint
 from usl.engine.checkpoint import load_checkpoint
 
 
-def test_global_stage_only_keeps_the_global_mesh_and_other_sampler_only_the_refinement_inputs(tmp_path):
+def test_each_variant_changes_the_shape_head_as_its_name_says(tmp_path):
     payload = torch.load(tiny_checkpoint(tmp_path / "run"), map_location="cpu", weights_only=True)
     generator = torch.Generator().manual_seed(0)
     for name, value in payload["model"].items():  # as if trained: every layer that moves vertices non-zero
@@ -37,3 +37,14 @@ def test_global_stage_only_keeps_the_global_mesh_and_other_sampler_only_the_refi
     torch.testing.assert_close(global_only.verts, as_trained.stage_verts[0], rtol=0, atol=0)
     torch.testing.assert_close(other.stage_verts[0], as_trained.stage_verts[0], rtol=0, atol=0)
     assert not torch.allclose(other.verts, as_trained.verts, atol=1e-3)  # other features, other offsets
+
+    # without vertex features the stages see positions only: other maps, the same meshes
+    blind = heads["no vertex features"]
+    other_maps = {name: torch.randn(value.shape, generator=generator) for name, value in features.items()}
+    with torch.no_grad():
+        seen, seen_elsewhere = blind(features, boxes, roi), blind(other_maps, boxes, roi)
+    torch.testing.assert_close(seen.verts, seen_elsewhere.verts, rtol=0, atol=0)
+    torch.testing.assert_close(seen.stage_verts[0], as_trained.stage_verts[0], rtol=0, atol=0)
+    assert not torch.allclose(seen.verts, seen.stage_verts[0], atol=1e-3)  # the stages still move vertices
+    with torch.no_grad():
+        assert not torch.allclose(trained(other_maps, boxes, roi).verts, as_trained.verts, atol=1e-3)
