@@ -119,8 +119,10 @@ def measured_seconds_per_iter(out: Path, row: Row, iters: int) -> float:
     rates = []
     for path in sorted((out / "runs" / row.slug).glob("seed*/train_time.txt")):
         fields = path.read_text().split()
-        if len(fields) in (2, 3) and float(fields[2] if len(fields) == 3 else iters) > 0:
-            rates.append(float(fields[1]) / float(fields[2] if len(fields) == 3 else iters))
+        if len(fields) in (2, 3):
+            trained = float(fields[2]) if len(fields) == 3 else iters
+            if trained > 0:
+                rates.append(float(fields[1]) / trained)
     return statistics.fmean(rates) if rates else MEASURED_SECONDS_PER_ITER[row.slug]
 
 
