@@ -73,8 +73,9 @@ def node_command(endpoint: str, rdzv_id: str, out: Path, records: Path) -> list[
 
 # the agents' own logging of a slow rendezvous peer (a busy machine): both nodes still finish and exit 0
 RENDEZVOUS_RACES = ("failed to shutdown the rendezvous", "failed to send a keep-alive heartbeat to the rendezvous")
-# a C++ stack of a TCPStore read or write whose peer, the agent hosting the store, has exited
-STORE_STACK_STARTS = ("recvVector failed", "sendBytes failed")
+# the TCPStore client's report of a read or write whose peer, the agent hosting the store, has exited:
+# "[c10d] sendBytes (recvValue, recvVector, recvValueWithTimeout) failed on SocketImpl(...)", then a C++ stack
+STORE_FAILURE = re.compile(r"TCPStore\.cpp:\d+\] \[c10d\] \w+ failed on SocketImpl")
 STORE_STACK_LINES = ("Exception raised from ", "frame #", "<omitting python frames>")
 # torchrun's exit barrier: the agent hosting the store may exit as soon as the barrier's last member
 # has arrived, before that member's own read (pytorch/pytorch#69520); logged as one record, every line
@@ -92,7 +93,7 @@ def without_rendezvous_teardown(printed: str) -> str:
     for line in printed.splitlines():
         if in_stack and (not line.strip() or line.startswith(STORE_STACK_LINES)):
             continue
-        in_stack = "TCPStore.cpp" in line and any(start in line for start in STORE_STACK_STARTS)
+        in_stack = bool(STORE_FAILURE.search(line))
         barrier = EXIT_BARRIER.search(line)
         if barrier:
             barrier_tags.add(barrier.group(1))
@@ -217,3 +218,23 @@ def test_the_exit_barrier_race_is_forgiven_and_nothing_else():
     worker_error = "RuntimeError: gloo timed out"
     assert without_rendezvous_teardown(barrier + other_record) == other_record
     assert without_rendezvous_teardown(pipe + worker_error) == worker_error
+
+
+@pytest.mark.parametrize("call", ["sendBytes", "recvValue", "recvVector", "recvValueWithTimeout"])
+def test_every_failed_store_call_of_the_teardown_is_forgiven(call):
+    """The TCPStore client reports four socket calls (torch 2.13's libtorch_cpu: "<call> failed on
+    {}: {}"); CI printed recvValueWithTimeout from the exit barrier's wait (Python 3.10, torch 2.13).
+    Another warning of the store's still counts."""
+    failure = (
+        f"[W1206 23:12:05.218443711 TCPStore.cpp:138] [c10d] {call} failed on SocketImpl(fd=3,"
+        " addr=[::ffff:127.0.0.1]:57332, remote=[::ffff:127.0.0.1]:42755): Failed to recv, got 0 bytes.\n"
+        "Exception raised from recvBytes at Utils.hpp:787 (most recent call first):\n"
+        "frame #5: c10d::TCPStore::doWait(c10::ArrayRef<std::string>, std::chrono::milliseconds) + 0xc5\n"
+        "<omitting python frames>\n"
+        "frame #49: _start + 0x21\n"
+        "\n"
+        "\n"
+    )
+    assert without_rendezvous_teardown(f"usl-train: done\n{failure}--- node1:") == "usl-train: done\n--- node1:"
+    somaxconn = "[W1206 TCPStore.cpp:334] [c10d] Starting store with 4 workers but somaxconn is 2."
+    assert without_rendezvous_teardown(failure + somaxconn) == somaxconn
