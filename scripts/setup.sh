@@ -36,21 +36,14 @@ EXTRAS=""
 ((TESTS)) && EXTRAS="[test,ray]"
 CONSTRAINTS=$(mktemp)
 trap 'rm -f "$CONSTRAINTS"' EXIT
-# A torch the environment already has, if pyproject.toml allows it: pinned to itself, so that
-# neither the lock nor an eager upgrade swaps a CUDA build someone chose for PyPI's default build.
-KEPT_TORCH=$($PY - <<'PY' 2>/dev/null || true
-import re, torch
-version = torch.__version__
-major, minor = (int(x) for x in re.match(r"(\d+)\.(\d+)", version).groups())
-if (2, 13) <= (major, minor) < (3, 0):  # pyproject.toml: torch>=2.13,<3
-    print(version)
-PY
-)
+# A torch the environment already has, if pyproject.toml allows it, pinned to itself (its
+# distribution's version): neither the lock nor an eager upgrade swaps a build someone chose.
+KEPT_TORCH=$($PY scripts/lib/kept_torch.py)
 case $DEPS in
   lock)
     grep -v '^torch==' scripts/requirements.lock >"$CONSTRAINTS"
     if [[ -n $KEPT_TORCH ]]; then
-      echo "torch==$KEPT_TORCH" >>"$CONSTRAINTS"
+      echo "$KEPT_TORCH" >>"$CONSTRAINTS"
     else
       grep '^torch==' scripts/requirements.lock >>"$CONSTRAINTS" || true
     fi
@@ -58,8 +51,8 @@ case $DEPS in
     $PY -m pip install -q --root-user-action=ignore -c "$CONSTRAINTS" -e ".$EXTRAS"
     ;;
   newest)
-    [[ -z $KEPT_TORCH ]] || echo "torch==$KEPT_TORCH" >"$CONSTRAINTS"
-    say "installing usl (editable)${EXTRAS:+ with the extras $EXTRAS} with the newest versions pyproject.toml allows${KEPT_TORCH:+ (keeping torch $KEPT_TORCH)}"
+    [[ -z $KEPT_TORCH ]] || echo "$KEPT_TORCH" >"$CONSTRAINTS"
+    say "installing usl (editable)${EXTRAS:+ with the extras $EXTRAS} with the newest versions pyproject.toml allows${KEPT_TORCH:+ (keeping $KEPT_TORCH)}"
     $PY -m pip install -q --root-user-action=ignore --upgrade --upgrade-strategy eager -c "$CONSTRAINTS" -e ".$EXTRAS"
     ;;
   none) ;;
