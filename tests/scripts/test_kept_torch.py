@@ -4,6 +4,7 @@ requirement without looking at any index (PyPI's default build reports ``torch._
 ``+cu…`` tag that its distribution's version lacks, and a pin of that made set-up fail)."""
 
 import importlib.util
+import os
 import subprocess
 import sys
 from importlib.metadata import PackageNotFoundError, version
@@ -22,11 +23,14 @@ def test_the_pin_names_the_installed_distribution_and_pip_accepts_it(tmp_path):
     assert pin == f"torch=={version('torch')}"
     constraints = tmp_path / "constraints.txt"
     constraints.write_text(pin + "\n")
+    # pip as a user's machine has it: none of this machine's pip configuration (a cap on torch, say)
+    env = {key: value for key, value in os.environ.items() if not key.startswith("PIP_")}
     resolved = subprocess.run(
         [sys.executable, "-m", "pip", "install", "--dry-run", "--no-index", "--no-deps", "-c", str(constraints)]
         + ["torch>=2.13,<3"],  # pyproject.toml's range
         capture_output=True,
         text=True,
+        env={**env, "PIP_CONFIG_FILE": os.devnull},
     )
     assert resolved.returncode == 0, resolved.stdout + resolved.stderr
     assert "already satisfied" in resolved.stdout and "Would install" not in resolved.stdout, resolved.stdout
