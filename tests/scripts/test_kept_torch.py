@@ -5,9 +5,10 @@ requirement without looking at any index (PyPI's default build reports ``torch._
 
 import importlib.util
 import os
+import re
 import subprocess
 import sys
-from importlib.metadata import PackageNotFoundError, version
+from importlib.metadata import PackageNotFoundError, requires, version
 from pathlib import Path
 
 import pytest
@@ -16,6 +17,8 @@ SCRIPT = Path(__file__).resolve().parents[2] / "scripts" / "lib" / "kept_torch.p
 SPEC = importlib.util.spec_from_file_location("kept_torch", SCRIPT)
 kept_torch = importlib.util.module_from_spec(SPEC)
 SPEC.loader.exec_module(kept_torch)
+# usl's own requirement on torch, as the build backend wrote it into the installed metadata
+USL_TORCH = next(r for r in requires("usl") if re.match(r"torch\s*[<>=]", r))
 
 
 def test_the_pin_names_the_installed_distribution_and_pip_accepts_it(tmp_path):
@@ -27,7 +30,7 @@ def test_the_pin_names_the_installed_distribution_and_pip_accepts_it(tmp_path):
     env = {key: value for key, value in os.environ.items() if not key.startswith("PIP_")}
     resolved = subprocess.run(
         [sys.executable, "-m", "pip", "install", "--dry-run", "--no-index", "--no-deps", "-c", str(constraints)]
-        + ["torch>=2.13,<3"],  # pyproject.toml's range
+        + [USL_TORCH],
         capture_output=True,
         text=True,
         env={**env, "PIP_CONFIG_FILE": os.devnull},
@@ -43,6 +46,12 @@ def test_the_pin_names_the_installed_distribution_and_pip_accepts_it(tmp_path):
 def test_only_a_torch_that_pyproject_allows_is_kept(monkeypatch, installed, pin):
     monkeypatch.setattr(kept_torch, "version", lambda name: installed)
     assert kept_torch.kept_torch_pin() == pin
+
+
+def test_the_range_is_usl_s_own():
+    """The range read from pyproject.toml is the one the installed usl declares."""
+    (major, minor), below = kept_torch.allowed_torch()
+    assert sorted(USL_TORCH.replace("torch", "").replace(" ", "").split(",")) == [f"<{below}", f">={major}.{minor}"]
 
 
 def test_no_torch_no_pin(monkeypatch):
