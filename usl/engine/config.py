@@ -22,7 +22,7 @@ class OptimConfig:
     clip_grad_norm: float = 0.0
 
     def __post_init__(self) -> None:
-        check_choice("optim.name", self.name, ("sgd", "adam", "muon"))
+        check_choice("optim.name", self.name, ("sgd", "adam"))
         check_positive("optim.max_iter", self.max_iter)
 
 

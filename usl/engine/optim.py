@@ -9,7 +9,6 @@ import torch
 from torch import nn
 
 from usl.engine.config import OptimConfig
-from usl.engine.muon import MuonAdam, uses_muon
 
 WARMUP_FACTOR = 0.001  # the rate at iteration 0 of the warm-up, as a fraction of lr (detectron2's)
 
@@ -26,23 +25,18 @@ def build_optimizer(
     and ``GradScaler.step`` hands it the skip of a non-finite step on the device, without a host sync.
     """
     lr_factors = lr_factors or {}
-    groups: dict[tuple[float, bool], list[nn.Parameter]] = {}
+    groups: dict[float, list[nn.Parameter]] = {}
     matched = set()
     for name, param in named_params:
         if not param.requires_grad:
             continue
         prefix = max((k for k in lr_factors if name == k or name.startswith(k + ".")), key=len, default=None)
         matched.add(prefix)
-        muon = cfg.name == "muon" and uses_muon(name, param)
-        groups.setdefault((lr_factors[prefix] if prefix is not None else 1.0, muon), []).append(param)
+        groups.setdefault(lr_factors[prefix] if prefix is not None else 1.0, []).append(param)
     unused = sorted(set(lr_factors) - matched)
     if unused:
         raise ValueError(f"learning-rate factors: no trainable parameter is named {unused} or below it")
-    param_groups = [{"params": params, "lr": cfg.lr * factor, "muon": muon} for (factor, muon), params in groups.items()]
-    if cfg.name == "muon":
-        return MuonAdam(param_groups, lr=cfg.lr, momentum=cfg.momentum)
-    for group in param_groups:
-        del group["muon"]
+    param_groups = [{"params": params, "lr": cfg.lr * factor} for factor, params in groups.items()]
     if cfg.name == "adam":
         return torch.optim.Adam(param_groups, lr=cfg.lr, weight_decay=cfg.weight_decay, fused=True)
     return torch.optim.SGD(param_groups, lr=cfg.lr, momentum=cfg.momentum, weight_decay=cfg.weight_decay, fused=True)
