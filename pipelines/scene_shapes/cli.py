@@ -44,7 +44,7 @@ EPILOG = (
 
 def parser() -> argparse.ArgumentParser:
     rig = RigConfig()
-    common = build_common_options(seed="drives splits, layouts and appearance")
+    common = build_common_options(seed="drives splits, layouts, appearance and (procedural) the shape models: other seeds, other models")
     p = make_parser(COMMAND, __doc__, parents=[common], epilog=EPILOG)
     add_build_arguments(p)
     p.add_argument("--num-scenes", type=int, default=3600, help="scenes over all splits")
@@ -175,7 +175,10 @@ def _models(args: argparse.Namespace) -> tuple[list[ModelRef], MeshNormalisation
     if args.mesh_root is None:
         if args.category_map is not None:
             raise UslError("--category-map needs --mesh-root")
-        return procedural_refs(args.num_models), None, {"generator_version": GENERATOR_VERSION}
+        # a seed's own model range is in the fingerprint from seed 1 on (seed 0's is the first one, as
+        # before seeds had ranges, so its builds resume)
+        pool = {"model_pool": "per_seed"} if args.seed else {}
+        return procedural_refs(args.num_models, args.seed), None, {"generator_version": GENERATOR_VERSION, **pool}
     if args.category_map is None:
         raise UslError("--mesh-root needs --category-map (folder name -> chair/sofa/table)")
     category_map = load_category_map(args.category_map)

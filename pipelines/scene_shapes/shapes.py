@@ -30,6 +30,10 @@ FAMILIES: dict[str, dict[str, Callable[[np.random.Generator], list[Part]]]] = {
 # dataset folder is never completed with meshes from a different generator.
 GENERATOR_VERSION = 1
 PROCEDURAL_PREFIX = "proc"
+# Each build seed draws its procedural models from its own range of indices (seed x this, on): builds
+# with other seeds share no shape model, so one can hold out shapes as well as scenes. Seed 0's
+# models are indices 0, 1, ...
+SEED_INDEX_STRIDE = 1_000_000
 
 
 @dataclass(frozen=True)
@@ -83,17 +87,23 @@ def procedural_source_id(category: str, family: str, index: int) -> str:
     return f"{PROCEDURAL_PREFIX}/{category}/{family}/{index:06d}"
 
 
-def procedural_refs(num_models: int, categories: tuple[str, ...] = CATEGORIES) -> list[ModelRef]:
-    """``num_models`` procedural models spread evenly over categories, and over families within each."""
+def procedural_refs(num_models: int, seed: int = 0, categories: tuple[str, ...] = CATEGORIES) -> list[ModelRef]:
+    """``num_models`` procedural models of build seed ``seed``, spread evenly over categories, and over
+    families within each; no two seeds share a model."""
     if num_models < len(categories):
         raise UslError(f"--num-models {num_models} is fewer than the {len(categories)} categories")
+    if seed < 0:
+        raise UslError(f"--seed {seed}: procedural models need a seed >= 0")
     refs = []
     for c, category in enumerate(categories):
         count = num_models // len(categories) + (1 if c < num_models % len(categories) else 0)
         families = list(FAMILIES[category])
+        if count > len(families) * SEED_INDEX_STRIDE:
+            raise UslError(f"--num-models {num_models}: over {SEED_INDEX_STRIDE:,} models of one {category} family")
         for k in range(count):
             family = families[k % len(families)]
-            refs.append(ModelRef(procedural_source_id(category, family, k // len(families)), category))
+            index = seed * SEED_INDEX_STRIDE + k // len(families)
+            refs.append(ModelRef(procedural_source_id(category, family, index), category))
     return refs
 
 

@@ -16,6 +16,7 @@ from pipelines.scene_shapes.shapes import (
     procedural_refs,
     procedural_source_id,
 )
+from usl.errors import UslError
 
 SEEDS = range(3)
 # Documented extents (x = width, y = height, z = depth), metres, of each family (module docstrings).
@@ -172,3 +173,21 @@ def test_procedural_refs_balance_categories_and_families():
         assert max(counts) - min(counts) <= 1
         for ref in models[:5]:
             assert generate_procedural(ref.source_id).category == category
+
+
+def test_each_seed_draws_its_own_models_and_seed_0_keeps_its_ids():
+    pools = {seed: {r.source_id for r in procedural_refs(300, seed)} for seed in (0, 1, 2, 7)}
+    for a in pools:
+        for b in pools:
+            if a < b:
+                assert not pools[a] & pools[b], (a, b)
+    # seed 0: the models builds had before seeds had model ranges (their data is unchanged)
+    first_chair = next(iter(FAMILIES["chair"]))
+    assert procedural_refs(3)[0].source_id == procedural_source_id("chair", first_chair, 0) == procedural_refs(3, 0)[0].source_id
+    assert procedural_refs(3, 2)[0].source_id == procedural_source_id("chair", first_chair, 2_000_000)
+    assert [r.category for r in procedural_refs(100, 1)] == [r.category for r in procedural_refs(100)]
+
+
+def test_procedural_models_refuse_a_negative_seed():
+    with pytest.raises(UslError, match="--seed -1"):
+        procedural_refs(10, -1)

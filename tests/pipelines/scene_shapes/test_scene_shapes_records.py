@@ -165,3 +165,25 @@ def test_refuses_an_output_folder_holding_another_build(tiny_dataset, capsys):
     assert build["fingerprint"]["generator_version"] >= 1
     assert main(["--out", str(tiny_dataset), "--num-scenes", "10", "--seed", "6", "--quiet"]) == 2
     assert str(tiny_dataset) in capsys.readouterr().err
+
+
+def test_a_build_with_another_seed_shares_no_shape_model(tiny_dataset, tmp_path):
+    """Held-out builds (another --seed) hold out shapes as well as scenes."""
+    other = tmp_path / "seed6"
+    small = ["--num-scenes", "3", "--num-models", "30", "--resolution", "32", "--azimuths", "1", "--heights", "1"]
+    assert main(["--out", str(other), *small, "--seed", "6", "--quiet"]) == 0
+
+    def models(root):
+        return {o["source_id"] for split in SPLITS for s, o in _objects(root, split)}
+
+    assert models(other) and models(tiny_dataset)
+    assert not models(other) & models(tiny_dataset)
+    build = json.loads((other / ".build" / "build.json").read_text())
+    assert build["fingerprint"]["model_pool"] == "per_seed"
+
+
+def _objects(root, split):
+    data = RecordsDataset(root, split)
+    for scene_id in data.scene_ids:
+        for obj in data.read_objects(scene_id):
+            yield scene_id, obj
