@@ -44,7 +44,9 @@ EPILOG = (
 
 def parser() -> argparse.ArgumentParser:
     rig = RigConfig()
-    common = build_common_options(seed="drives splits, layouts, appearance and (procedural) the shape models: other seeds, other models")
+    common = build_common_options(
+        seed="drives splits, layouts, appearance and the procedural shape models (other seeds: other models)"
+    )
     p = make_parser(COMMAND, __doc__, parents=[common], epilog=EPILOG)
     add_build_arguments(p)
     p.add_argument("--num-scenes", type=int, default=3600, help="scenes over all splits")

@@ -183,7 +183,11 @@ def test_each_seed_draws_its_own_models_and_seed_0_keeps_its_ids():
                 assert not pools[a] & pools[b], (a, b)
     # seed 0: the models builds had before seeds had model ranges (their data is unchanged)
     first_chair = next(iter(FAMILIES["chair"]))
-    assert procedural_refs(3)[0].source_id == procedural_source_id("chair", first_chair, 0) == procedural_refs(3, 0)[0].source_id
+    assert (
+        procedural_refs(3)[0].source_id
+        == procedural_source_id("chair", first_chair, 0)
+        == procedural_refs(3, 0)[0].source_id
+    )
     assert procedural_refs(3, 2)[0].source_id == procedural_source_id("chair", first_chair, 2_000_000)
     assert [r.category for r in procedural_refs(100, 1)] == [r.category for r in procedural_refs(100)]
 
