@@ -24,7 +24,7 @@ stage() { echo "== $* ($(( $(date +%s) - start )) s in)"; }  # each stage's star
 
 source scripts/lib/scene_shapes_builds.sh
 stage "1/4 build Scene-Shapes ($DATA) and held-out builds with seeds ${HELDOUT_SEEDS[*]} ($OUT/heldout/seed*)"
-build_scene_shapes "$DATA" 0 60
+build_scene_shapes "$DATA" 0 "$TRAIN_SCENES"
 heldout_builds "$OUT"
 
 stage "2/4 validate and summarise"

@@ -9,7 +9,7 @@
 #   USL_EXP_CONFIG=scene_shapes bash scripts/experiments/recipe_experiment.sh r50 optim.max_iter=2000
 #
 # Environment: USL_EXP_DIR (default runs/experiments), USL_EXP_CONFIG (default tiny),
-# USL_EXP_TRAIN_SCENES (scenes and models of the training build, default 60 as the main job),
+# USL_EXP_TRAIN_SCENES (scenes and models of the training build, default the main job's TRAIN_SCENES),
 # USL_EXP_PROCS (training processes, default 1; 2 trains like the main job: DDP, half the batch each).
 # The main job's training: USL_EXP_PROCS=2 bash scripts/experiments/recipe_experiment.sh ...
 # Writes $USL_EXP_DIR/NAME/{train,eval}; prints the held-out table and the training CPU time.
@@ -27,11 +27,12 @@ ROOT=${USL_EXP_DIR:-runs/experiments}
 DATA=$ROOT/data
 RUN=$ROOT/$NAME
 
-# a training build like the main job's (seed 0; USL_EXP_TRAIN_SCENES scenes and as many models),
+# a training build like the main job's (seed 0; TRAIN_SCENES or USL_EXP_TRAIN_SCENES scenes and as many models),
 # and the main job's held-out builds (seeds 1-3): other shape models, other scenes
 source scripts/lib/scene_shapes_builds.sh
-TRAIN=$DATA/train_seed0_${USL_EXP_TRAIN_SCENES:-60}
-build_scene_shapes "$TRAIN" 0 "${USL_EXP_TRAIN_SCENES:-60}" --quiet
+SCENES=${USL_EXP_TRAIN_SCENES:-$TRAIN_SCENES}
+TRAIN=$DATA/train_seed0_$SCENES
+build_scene_shapes "$TRAIN" 0 "$SCENES" --quiet
 heldout_builds "$DATA" --quiet
 
 rm -rf "$RUN" && mkdir -p "$RUN"

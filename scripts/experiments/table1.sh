@@ -66,7 +66,7 @@ if ((QUICK)); then
   # --num-models comes after, so replaces, the scene count build_scene_shapes passes)
   SCENES=10 HELDOUT_SCENES=3 HELDOUT_OPTS=(--num-models 9) EXTRA=(val.period=0) EVAL_OPTS=(--samples-3d 2000) PICTURES=1
 else
-  SEEDS=${SEEDS:-0,1,2} OUT=${OUT:-runs/table1} DATA=${DATA:-runs/experiments/data} SCENES=60
+  SEEDS=${SEEDS:-0,1,2} OUT=${OUT:-runs/table1} DATA=${DATA:-runs/experiments/data} SCENES=$TRAIN_SCENES
 fi
 [[ $SEEDS =~ ^[0-9]+(,[0-9]+)*$ ]] || { echo "table1.sh: error: --seeds $SEEDS is not a comma-separated list of integers" >&2; exit 2; }
 [[ $JOBS =~ ^[1-9][0-9]*$ ]] || { echo "table1.sh: error: --jobs $JOBS is not a positive integer" >&2; exit 2; }
