@@ -172,18 +172,18 @@ def test_a_build_with_another_seed_shares_no_shape_model(tiny_dataset, tmp_path)
     other = tmp_path / "seed6"
     small = ["--num-scenes", "3", "--num-models", "30", "--resolution", "32", "--azimuths", "1", "--heights", "1"]
     assert main(["--out", str(other), *small, "--seed", "6", "--quiet"]) == 0
-
-    def models(root):
-        return {o["source_id"] for split in SPLITS for s, o in _objects(root, split)}
-
-    assert models(other) and models(tiny_dataset)
-    assert not models(other) & models(tiny_dataset)
+    assert _source_ids(other) and _source_ids(tiny_dataset)
+    assert not _source_ids(other) & _source_ids(tiny_dataset)
     build = json.loads((other / ".build" / "build.json").read_text())
     assert build["fingerprint"]["model_pool"] == "per_seed"
 
 
-def _objects(root, split):
-    data = RecordsDataset(root, split)
-    for scene_id in data.scene_ids:
-        for obj in data.read_objects(scene_id):
-            yield scene_id, obj
+def _source_ids(root):
+    """Every shape model a build's objects name, over all splits (read back from the records)."""
+    return {
+        o["source_id"]
+        for split in SPLITS
+        for data in [RecordsDataset(root, split)]
+        for s in data.scene_ids
+        for o in data.read_objects(s)
+    }
