@@ -198,3 +198,38 @@ def test_two_migrations_at_once_leave_one_migrated_folder(v1):
     assert sorted(code for code, _ in results) in ([0, 0], [0, 2]), results
     assert all("Traceback" not in err for _, err in results), results
     assert validate_dataset(v1) == [] and not (v1 / ".migrate.json").exists() and not (v1 / ".lock").exists()
+
+
+ENTER_AND_LEAVE = """
+import sys
+from pathlib import Path
+from usl.errors import UslError
+from usl.records.claims import sole_writer
+refused = 0
+for _ in range(int(sys.argv[2])):
+    try:
+        with sole_writer(Path(sys.argv[1]), "usl-records migrate"):
+            pass
+    except UslError:
+        refused += 1
+print(refused)
+"""
+
+
+def test_a_writer_finishing_never_breaks_one_starting(tmp_path):
+    # The finishing writer removes the lock folders it leaves empty; the starting one may have just
+    # made them. Hundreds of rounds at once hit that window on every machine seen so far.
+    rounds = 300
+    runs = [
+        subprocess.Popen(
+            [sys.executable, "-c", ENTER_AND_LEAVE, str(tmp_path), str(rounds)],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        for _ in range(2)
+    ]
+    results = [(run.wait(), *run.communicate()) for run in runs]
+    assert [code for code, _, _ in results] == [0, 0], results
+    assert all(0 <= int(out) < rounds for _, out, _ in results)
+    assert list(tmp_path.iterdir()) == []

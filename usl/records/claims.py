@@ -35,6 +35,7 @@ from .tempfiles import process_token, temp_files_of
 
 HEARTBEAT_SECONDS = 5.0
 STALE_AFTER_SECONDS = 300.0
+_FOLDER_RACE_RETRIES = 100  # each retry needs another process to remove the folder again: it ends fast
 
 
 @cache
@@ -60,8 +61,20 @@ def _pid_alive(pid: int) -> bool:
 
 
 def _create_exclusive(path: Path, data: dict[str, Any]) -> None:
-    """Create ``path`` holding ``data``; FileExistsError if it exists (the atomic claim)."""
-    fd = os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+    """Create ``path`` holding ``data``; FileExistsError if it exists (the atomic claim).
+
+    Its folder is made when missing, again and again if need be: a sole writer that is finishing
+    removes the lock folders it leaves empty, and may do so between our mkdir and our create.
+    """
+    for _ in range(_FOLDER_RACE_RETRIES):
+        try:
+            fd = os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+            break
+        except FileNotFoundError:
+            with suppress(FileExistsError, FileNotFoundError):  # another process made or removed a folder meanwhile
+                path.parent.mkdir(parents=True)
+    else:
+        fd = os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)  # a real error: let it say so
     with os.fdopen(fd, "w") as f:
         f.write(json.dumps(data))
 
@@ -128,9 +141,7 @@ class Owner:
         }
 
     def __enter__(self) -> Owner:
-        self.owners_dir.mkdir(parents=True, exist_ok=True)  # a full or read-only disk: the caller's storage_faults
-        self.claims_dir.mkdir(exist_ok=True)
-        _create_exclusive(self.file, self.info())
+        _create_exclusive(self.file, self.info())  # a full or read-only disk: the caller's storage_faults
         self._thread.start()
         self.reap_stale_owners()
         return self
