@@ -63,7 +63,7 @@ def test_the_global_shape_stage_learns_at_a_tenth_of_the_rate():
     assert USLModel(cfg.model, cfg.loss, load_init_weights=False).lr_factors() == {}
 
 
-@pytest.mark.parametrize("name", ["adam", "sgd"])
+@pytest.mark.parametrize("name", ["adam", "sgd", "muon"])  # muon: the weight is an output layer's, Adam's
 def test_loaded_state_takes_its_parameters_layout_so_the_fused_step_pairs_the_right_elements(name):
     """A channels-last weight resumed from a checkpoint whose state is NCHW (written before its weights
     were channels-last, or on CUDA): after ``lay_out_state_like_params`` the fused step equals the
@@ -78,7 +78,7 @@ def test_loaded_state_takes_its_parameters_layout_so_the_fused_step_pairs_the_ri
         if fused_layout:
             optimizer = build_optimizer([("w", param)], cfg)
         else:
-            kind = torch.optim.Adam if name == "adam" else torch.optim.SGD
+            kind = torch.optim.SGD if name == "sgd" else torch.optim.Adam
             optimizer = kind([param], lr=0.1, **({"momentum": 0.9} if name == "sgd" else {}), foreach=True)
         param.grad = grad.clone().contiguous(memory_format=layout)
         optimizer.step()

@@ -197,8 +197,9 @@ def test_every_gradient_arrives_in_its_parameters_layout(records, tmp_path):
     assert {n: s for n, s in received.items() if s != params[n].stride()} == {}
 
 
-def test_non_finite_loss_skips_the_step(records, tmp_path):
-    cfg = load_config("tiny", [f"data.root={records}", *FAST, "train.batch_size=2"])
+@pytest.mark.parametrize("optimizer", ["adam", "muon"])
+def test_non_finite_loss_skips_the_step(records, tmp_path, optimizer):
+    cfg = load_config("tiny", [f"data.root={records}", *FAST, "train.batch_size=2", f"optim.name={optimizer}"])
     trainer = Trainer(cfg, tmp_path / "nan", DistInfo(0, 1, 0, torch.device("cpu")))
     batch = [trainer.loader.dataset[key] for key in next(iter(trainer.sampler))]
     bad = [replace(batch[0], views=[replace(v, K=v.K * float("nan")) for v in batch[0].views])] + batch[1:]

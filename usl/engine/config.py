@@ -9,9 +9,11 @@ from usl.config_io import ConfigError, check_choice, check_positive
 
 @dataclass
 class OptimConfig:
-    name: str = "sgd"  # "sgd" | "adam" (the paper: SGD on Hypersim and ScanNet, Adam on Scene-Shapes)
+    # "sgd" | "adam" (the paper: SGD on Hypersim and ScanNet, Adam on Scene-Shapes) | "muon" (Muon for
+    # the hidden layers' weights, Adam for the rest: usl.engine.muon)
+    name: str = "sgd"
     lr: float = 0.01  # base learning rate (for the whole batch of all processes)
-    momentum: float = 0.9  # SGD momentum (ignored by Adam)
+    momentum: float = 0.9  # SGD's and Muon's momentum (ignored by Adam)
     weight_decay: float = 1e-4  # L2 penalty on the weights (the paper: 1e-4 with SGD, 0 with Adam)
     steps: tuple[int, ...] = ()  # iterations at which the rate is multiplied by gamma (none: a constant rate)
     gamma: float = 0.1  # factor of each step
@@ -22,7 +24,9 @@ class OptimConfig:
     clip_grad_norm: float = 0.0
 
     def __post_init__(self) -> None:
-        check_choice("optim.name", self.name, ("sgd", "adam"))
+        check_choice("optim.name", self.name, ("sgd", "adam", "muon"))
+        if self.name == "muon" and self.weight_decay:
+            raise ConfigError(f"optim.weight_decay={self.weight_decay}: muon has no weight decay; set it to 0")
         check_positive("optim.max_iter", self.max_iter)
 
 

@@ -45,7 +45,9 @@ class TrainStep:
                 find_unused_parameters=not cfg.loss.weights.mu_2d,
             )
         self.params = [p for p in self.model.parameters() if p.requires_grad]
-        self.optimizer = build_optimizer(self.model.named_parameters(), cfg.optim, self.model.lr_factors())
+        self.optimizer = build_optimizer(
+            self.model.named_parameters(), cfg.optim, self.model.lr_factors(), self.model.prediction_weights()
+        )
         self.scheduler = build_scheduler(self.optimizer, cfg.optim)
         self.amp_dtype = AMP_DTYPES.get(cfg.train.amp) if info.device.type == "cuda" else None
         self.loss_scaling = self.amp_dtype is torch.float16  # dynamic loss scale; otherwise it stays 1

@@ -104,6 +104,12 @@ class USLModel(nn.Module):
         """Learning-rate factors by parameter-name prefix, for parts that need their own rate."""
         return {"shape_head.global_mlp": GLOBAL_STAGE_LR_FACTOR} if self.shape_head.global_mlp is not None else {}
 
+    def prediction_weights(self) -> set[str]:
+        """Names of the weights that write a prediction with many outputs (the global stage's vertex
+        offsets): optimizers for hidden layers (Muon) leave them to Adam, like the small output layers."""
+        mlp = self.shape_head.global_mlp
+        return {f"shape_head.global_mlp.{len(mlp) - 1}.weight"} if mlp is not None else set()
+
     # ------------------------------------------------------------------ shared parts
     def _backbone(self, frames: Sequence[FrameData]) -> tuple[ImageList, dict[str, Tensor]]:
         device = self.pixel_mean.device
