@@ -22,9 +22,9 @@ build_scene_shapes() {  # OUT SEED SCENES [builder options]
 }
 
 # The main job's training build: scenes, and as many procedural shape models. `tiny` learns the
-# scenes it trains on by heart: 180 scenes score higher on unseen ones than 60 in the same
-# iterations, for seconds more of building (docs/experiments/data.md, "More scenes").
-TRAIN_SCENES=180
+# scenes it trains on by heart: with Muon, 600 scenes score higher on unseen ones than 180 in the
+# same iterations, for about 45 s more of building (docs/experiments/data.md, "More scenes").
+TRAIN_SCENES=600
 
 # The held-out protocol of the main job and of recipe_experiment.sh: three builds with other seeds
 # (other shape models, other scenes), every view of every scene of their train split (the largest)

@@ -78,7 +78,7 @@ def test_scene_shapes_fpn_is_the_same_recipe_on_the_hypersim_architecture():
 def test_tiny_recipe_uses_the_detectors_tiny_network():
     tiny = load_config("tiny")
     assert to_dict(tiny.model.detector) == to_dict(DetectorConfig.tiny())
-    assert tiny.model.shape.ico_level == 2 and tiny.optim.name == "adam"
+    assert tiny.model.shape.ico_level == 2 and tiny.optim.name == "muon"
     # the FPN shape head of the defaults, not Scene-Shapes' Mesh R-CNN head, also sampling the image itself
     assert tiny.model.shape.features == ("p2", "image") and not tiny.model.shape.pass_features
     assert tiny.model.shape.bottleneck_init == "torch" and tiny.model.layout.in_features == ("p2",)
