@@ -1,11 +1,18 @@
 """Muon for hidden weights, Adam for the rest: against torch's own Muon and Adam, the SVD, and resumption."""
 
+import os
+import socket
+from pathlib import Path
+
 import pytest
 import torch
+import torch.distributed as dist
+import torch.multiprocessing as mp
 from torch import nn
 
 from tests.engine.test_optim import MODEL
 from usl.config import load_config
+from usl.engine import muon as muon_module
 from usl.engine.config import OptimConfig
 from usl.engine.muon import MuonAdam, is_hidden_weight, orthogonalize
 from usl.engine.optim import build_optimizer
@@ -28,9 +35,15 @@ def test_newton_schulz_gives_the_svds_orthogonal_factor_up_to_its_loose_singular
         assert (cosine > 0.95).all()
 
 
-def _params(shapes, seed=0):
+def _params(shapes, seed=0, channels_last=False):
     torch.manual_seed(seed)
-    return [nn.Parameter(torch.randn(shape) * 0.1) for shape in shapes]
+    layout = torch.channels_last if channels_last else torch.contiguous_format
+    return [
+        nn.Parameter(
+            (torch.randn(shape) * 0.1).contiguous(memory_format=layout if len(shape) == 4 else torch.contiguous_format)
+        )
+        for shape in shapes
+    ]
 
 
 def _steps(optimizer, params, grads):
@@ -134,3 +147,45 @@ def test_muon_refuses_weight_decay_and_bias_shaped_parameters():
         OptimConfig(name="muon", weight_decay=1e-4)
     with pytest.raises(ValueError, match=r"shape \(8,\) is not one"):
         MuonAdam([{"params": [nn.Parameter(torch.zeros(8))], "muon": True}], lr=1e-3)
+
+
+SHARED_SHAPES = [(32, 16, 3, 3), (32, 16, 3, 3), (64, 35), (128, 288), (20, 90), (3, 67), (32,)]
+
+
+def _sharded_rank(rank: int, port: int, out: str) -> None:
+    """Both processes step the same replicas (as DDP's all-reduced gradients make them)."""
+    os.environ.update(MASTER_ADDR="127.0.0.1", MASTER_PORT=str(port))
+    dist.init_process_group("gloo", rank=rank, world_size=2)
+    try:
+        calls = []
+        original = muon_module.orthogonalize
+        muon_module.orthogonalize = lambda matrices: calls.append(tuple(matrices.shape)) or original(matrices)
+        params = _params(SHARED_SHAPES, channels_last=True)  # as the backbone's weights are on the CPU
+        optimizer = MuonAdam([{"params": params[:5], "muon": True}, {"params": params[5:]}], lr=1e-2)
+        torch.manual_seed(1)
+        grads = [[torch.randn(s) for s in SHARED_SHAPES] for _ in range(3)]
+        # the gradients in their weights' layout, as autograd gives them
+        _steps(
+            optimizer, params, [[torch.empty_like(p).copy_(g) for g, p in zip(gs, params, strict=True)] for gs in grads]
+        )
+        torch.save({"params": [p.detach() for p in params], "calls": calls}, Path(out, f"{rank}.pt"))
+    finally:
+        dist.destroy_process_group()
+
+
+def test_under_ddp_each_process_orthogonalises_a_share_and_all_step_as_one_process_does(tmp_path):
+    with socket.socket() as s:  # a free port
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    mp.start_processes(_sharded_rank, args=(port, str(tmp_path)), nprocs=2, start_method="spawn")
+    ranks = [torch.load(tmp_path / f"{rank}.pt") for rank in range(2)]
+    alone = _params(SHARED_SHAPES)
+    torch.manual_seed(1)
+    optimizer = MuonAdam([{"params": alone[:5], "muon": True}, {"params": alone[5:]}], lr=1e-2)
+    _steps(optimizer, alone, [[torch.randn(s) for s in SHARED_SHAPES] for _ in range(3)])
+    for rank in ranks:
+        for mine, ref in zip(rank["params"], alone, strict=True):
+            assert torch.equal(mine, ref.detach())
+    calls = [sorted(set(rank["calls"])) for rank in ranks]
+    assert calls[0] and calls[1] and not set(calls[0]) & set(calls[1])  # disjoint shares, none idle
+    assert sorted(calls[0] + calls[1]) == [(1, 20, 90), (1, 64, 35), (1, 128, 288), (2, 32, 144)]

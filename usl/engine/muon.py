@@ -17,9 +17,11 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable
+from dataclasses import dataclass
 from typing import Any
 
 import torch
+import torch.distributed as dist
 from torch.optim.adam import adam
 
 NEWTON_SCHULZ_COEFFICIENTS = (3.4445, -4.7750, 2.0315)  # Jordan et al.'s quintic: fast, not exact
@@ -57,6 +59,34 @@ def orthogonalize(matrices: torch.Tensor, steps: int = NEWTON_SCHULZ_STEPS) -> t
     return x.mT if tall else x
 
 
+@dataclass
+class _MuonBatch:
+    """The parameters of one shape in one group: their momentum buffers (old and new) and the update."""
+
+    params: list[torch.Tensor]
+    buffers: list[torch.Tensor]
+    old_buffers: torch.Tensor
+    new_buffers: torch.Tensor
+    update: torch.Tensor  # (batch, *shape)
+    lr: float
+
+    @property
+    def cost(self) -> int:
+        """Multiply-adds of the orthogonalisation, about: the Gram products dominate."""
+        n, m = sorted((self.update.shape[1], self.update[0, 0].numel()))
+        steps = NEWTON_SCHULZ_STEPS
+        return len(self.params) * (steps * (2 * n * n * m + n**3) if m < 3 * n else 2 * n * n * m + steps * 4 * n**3)
+
+
+def _balanced_owners(costs: list[int], world: int) -> list[int]:
+    """A process for each batch, the largest first to the least loaded (the same on every process)."""
+    load, owners = [0] * world, [0] * len(costs)
+    for index in sorted(range(len(costs)), key=lambda i: -costs[i]):
+        owner = min(range(world), key=lambda r: load[r])
+        owners[index], load[owner] = owner, load[owner] + costs[index]
+    return owners
+
+
 class MuonAdam(torch.optim.Optimizer):
     """Groups with ``muon=True`` step with Muon (Nesterov ``momentum``), the others with Adam (``betas``, ``eps``)."""
 
@@ -84,12 +114,14 @@ class MuonAdam(torch.optim.Optimizer):
     def step(self, closure: None = None) -> None:
         grad_scale = getattr(self, "grad_scale", None)
         found_inf = getattr(self, "found_inf", None)
+        batches: list[_MuonBatch] = []
         for group in self.param_groups:
             params = [p for p in group["params"] if p.grad is not None]
             if group["muon"]:
-                self._muon_step(params, group, grad_scale, found_inf)
+                batches += self._muon_batches(params, group, grad_scale)
             else:
                 self._adam_step(params, group, grad_scale, found_inf)
+        self._muon_step(batches, found_inf)
 
     def _adam_step(self, params: list[torch.Tensor], group: dict[str, Any], grad_scale, found_inf) -> None:
         for param in params:
@@ -119,12 +151,14 @@ class MuonAdam(torch.optim.Optimizer):
             maximize=False,
         )
 
-    def _muon_step(self, params: list[torch.Tensor], group: dict[str, Any], grad_scale, found_inf) -> None:
+    def _muon_batches(self, params: list[torch.Tensor], group: dict[str, Any], grad_scale) -> list[_MuonBatch]:
+        """The group's parameters by shape, each shape's new momentum and Nesterov update stacked."""
         by_shape: dict[torch.Size, list[torch.Tensor]] = {}
         for param in params:
             by_shape.setdefault(param.shape, []).append(param)
         momentum = group["momentum"]
-        for shape, members in by_shape.items():
+        batches = []
+        for members in by_shape.values():
             buffers = [self._momentum_buffer(p) for p in members]
             grads = torch.stack([p.grad for p in members])
             if grad_scale is not None:
@@ -132,15 +166,37 @@ class MuonAdam(torch.optim.Optimizer):
             old_buffers = torch.stack(buffers)
             new_buffers = old_buffers * momentum + grads
             update = grads.add_(new_buffers, alpha=momentum)  # Nesterov
-            matrices = update.reshape(len(members), shape[0], -1)
-            scale = RMS_MATCH * math.sqrt(max(matrices.shape[-2:]))
-            step = orthogonalize(matrices).reshape(len(members), *shape).mul_(-group["lr"] * scale)
+            batches.append(_MuonBatch(members, buffers, old_buffers, new_buffers, update, group["lr"]))
+        return batches
+
+    def _muon_step(self, batches: list[_MuonBatch], found_inf) -> None:
+        """Orthogonalise every batch's update and step; under DDP each process orthogonalises a
+        share of the batches and broadcasts them (every process steps the same replicas)."""
+        rank, world = (dist.get_rank(), dist.get_world_size()) if dist.is_initialized() else (0, 1)
+        owners = _balanced_owners([batch.cost for batch in batches], world)
+        steps, pending = [], []
+        for batch, owner in zip(batches, owners, strict=True):
+            members, shape = batch.params, batch.params[0].shape
+            if owner == rank:
+                matrices = batch.update.reshape(len(members), shape[0], -1)
+                scale = RMS_MATCH * math.sqrt(max(matrices.shape[-2:]))
+                # contiguous: a broadcast sends and receives memory in order, whatever the strides say
+                step = orthogonalize(matrices).reshape(batch.update.shape).mul(-batch.lr * scale).contiguous()
+            else:
+                step = torch.empty(batch.update.shape, dtype=batch.update.dtype, device=batch.update.device)
+            if world > 1:
+                pending.append(dist.broadcast(step, src=owner, async_op=True))
+            steps.append(step)
+        for work in pending:
+            work.wait()
+        for batch, step in zip(batches, steps, strict=True):
+            new_buffers = batch.new_buffers
             if found_inf is not None:  # a skipped step moves nothing (its gradients are NaN)
                 skip = found_inf.to(torch.bool)
-                new_buffers = torch.where(skip, old_buffers, new_buffers)
+                new_buffers = torch.where(skip, batch.old_buffers, new_buffers)
                 step = torch.where(skip, 0.0, step)
-            torch._foreach_copy_(buffers, list(new_buffers.unbind(0)))
-            torch._foreach_add_(members, list(step.unbind(0)))
+            torch._foreach_copy_(batch.buffers, list(new_buffers.unbind(0)))
+            torch._foreach_add_(batch.params, list(step.unbind(0)))
 
     def _momentum_buffer(self, param: torch.Tensor) -> torch.Tensor:
         state = self.state[param]
