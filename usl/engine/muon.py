@@ -10,7 +10,9 @@ learning rate and schedule serve both kinds of parameter.
 convolution's weight is the matrix (out, in x kh x kw), the matrices of one shape are orthogonalised
 together (a batched matmul instead of a loop of small ones), the Adam part is torch's fused Adam,
 and a step that ``GradScaler`` flags as non-finite (``found_inf``) leaves every parameter and
-every state untouched without a host sync, as the fused optimizers do.
+every state untouched without a host sync, as the fused optimizers do. Under DDP every process
+would orthogonalise the same matrices; instead each takes a share, balanced by cost, and broadcasts
+its results, so two CPU processes spend half the time and step exactly as one would.
 """
 
 from __future__ import annotations
