@@ -12,22 +12,22 @@ them alike. Prints each one's CPU ms per step and its ratio to the first.
 from __future__ import annotations
 
 import argparse
+import sys
 import time
+from pathlib import Path
 
 import torch
 
-from usl.config import load_config
-from usl.engine.optim import build_optimizer
-from usl.model.usl_model import USLModel
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))  # the checkout: its tests' recipe configs
 
-# a recipe's model needs its dataset's categories and depth range; their values do not change the cost
-MODEL_FIELDS = ["model.categories=[a, b, c]", "model.layout_range.z1=9", "model.layout_range.z0=1"]
-MODEL_FIELDS += ["model.layout_range.rho1=2", "model.layout_range.rho0=0.1"]
+from tests.data.synthetic_samples import synthetic_config  # noqa: E402
+from usl.engine.optim import build_optimizer  # noqa: E402
+from usl.model.usl_model import USLModel  # noqa: E402
 
 
 def optimizer_for(config: str, name: str) -> tuple[torch.optim.Optimizer, torch.amp.GradScaler]:
-    overrides = [*MODEL_FIELDS, f"optim.name={name}", *(["optim.weight_decay=0"] if name == "muon" else [])]
-    cfg = load_config(config, overrides)
+    # the recipe's dataset's categories and depth range (synthetic_config): the model needs them
+    cfg = synthetic_config(config, [f"optim.name={name}", *(["optim.weight_decay=0"] if name == "muon" else [])])
     torch.manual_seed(0)
     model = USLModel(cfg.model, cfg.loss, load_init_weights=False)
     model.lay_out_weights_like_features(torch.device("cpu"))

@@ -31,6 +31,11 @@ NEWTON_SCHULZ_STEPS = 5
 RMS_MATCH = 0.2  # Adam's typical update RMS
 
 
+def _through_gram(n: int, m: int) -> bool:
+    """Whether an n x m matrix (n the smaller side) iterates on its Gram matrix: only when wide enough."""
+    return m >= 3 * n
+
+
 def orthogonalize(matrices: torch.Tensor, steps: int = NEWTON_SCHULZ_STEPS) -> torch.Tensor:
     """About U V^T of each matrix's SVD, for a batch (B, rows, cols) of matrices.
 
@@ -45,11 +50,7 @@ def orthogonalize(matrices: torch.Tensor, steps: int = NEWTON_SCHULZ_STEPS) -> t
     if tall:  # iterate on the smaller side
         x = x.mT
     n, m = x.shape[-2:]
-    if m < 3 * n:  # near square: the direct iteration is as cheap
-        for _ in range(steps):
-            gram = x @ x.mT
-            x = a * x + (b * gram + c * gram @ gram) @ x
-    else:
+    if _through_gram(n, m):
         gram = x @ x.mT
         q = torch.eye(n, dtype=x.dtype, device=x.device).expand_as(gram)
         for _ in range(steps):
@@ -58,6 +59,10 @@ def orthogonalize(matrices: torch.Tensor, steps: int = NEWTON_SCHULZ_STEPS) -> t
             q = poly @ q
             gram = poly @ gram @ poly  # P commutes with G: G_{k+1} = P G_k P^T = P G_k P
         x = q @ x
+    else:  # near square: the direct iteration is as cheap
+        for _ in range(steps):
+            gram = x @ x.mT
+            x = a * x + (b * gram + c * gram @ gram) @ x
     return x.mT if tall else x
 
 
@@ -77,7 +82,8 @@ class _MuonBatch:
         """Multiply-adds of the orthogonalisation, about: the Gram products dominate."""
         n, m = sorted((self.update.shape[1], self.update[0, 0].numel()))
         steps = NEWTON_SCHULZ_STEPS
-        return len(self.params) * (steps * (2 * n * n * m + n**3) if m < 3 * n else 2 * n * n * m + steps * 4 * n**3)
+        per_matrix = 2 * n * n * m + steps * 4 * n**3 if _through_gram(n, m) else steps * (2 * n * n * m + n**3)
+        return len(self.params) * per_matrix
 
 
 def _balanced_owners(costs: list[int], world: int) -> list[int]:
